@@ -1,0 +1,175 @@
+// Rig YAML: round trip, OpenCV-readable keys, and a clear error for every malformed file.
+
+#include "pulsetrack/vision/stereo_rig.hpp"
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core/persistence.hpp>
+#include <regex>
+
+#include "test_util.hpp"
+
+namespace pulsetrack::vision {
+namespace {
+
+StereoRig sampleRig() {
+  StereoRig rig;
+  const double d1[5] = {-0.21, 0.35, 0.0012, -0.0008, -0.9};
+  const double d2[8] = {-0.3, 0.1, 0.001, -0.002, 0.05, 0.02, -0.01, 0.03};
+  rig.left = CameraModel({5376.3, 0, 680.2, 0, 5371.8, 511.7, 0, 0, 1}, d1, 5, {1360, 1024});
+  rig.right = CameraModel({5380.1, 0, 690.5, 0, 5379.9, 505.2, 0, 0, 1}, d2, 8, {1360, 1024});
+  cv::Matx33d r;
+  cv::Rodrigues(cv::Vec3d(0.01, -0.14, 0.005), r);
+  rig.r = r;
+  rig.t = {-60.0, 0.4, 4.5};
+  rig.rms = 0.21;
+  return rig;
+}
+
+class RigFile : public ::testing::Test {
+ protected:
+  test::TempDir dir;
+  std::string good = dir / "rig.yaml";
+  void SetUp() override { ASSERT_TRUE(saveRig(sampleRig(), good)); }
+
+  std::string text() const {
+    std::ifstream f(good);
+    return {std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>()};
+  }
+  // Writes a variant of the good file and expects loading it to fail with a message that names
+  // the file and matches `expected`.
+  void expectError(const std::string& content, const std::string& expected) const {
+    const std::string bad = dir / "bad.yaml";
+    std::ofstream(bad) << content;
+    auto rig = loadRig(bad);
+    ASSERT_FALSE(rig) << "loaded a bad file; expected: " << expected;
+    EXPECT_NE(rig.error().message.find(bad), std::string::npos) << rig.error().message;
+    EXPECT_TRUE(std::regex_search(rig.error().message, std::regex(expected)))
+        << "message: " << rig.error().message << "\nexpected: " << expected;
+  }
+  // The good file's text with the block of `key` replaced.
+  std::string replaceKey(const std::string& key, const std::string& block) const {
+    std::string t = text();
+    const size_t start = t.find("\n" + key + ":");
+    EXPECT_NE(start, std::string::npos) << key;
+    size_t end = t.find('\n', start + 1);
+    while (end != std::string::npos && end + 1 < t.size() && t[end + 1] == ' ') end = t.find('\n', end + 1);
+    return t.substr(0, start + 1) + block + (end == std::string::npos ? "" : t.substr(end));
+  }
+  std::string removeKey(const std::string& key) const { return replaceKey(key, "dummy: 0"); }
+};
+
+TEST_F(RigFile, RoundTripIsExact) {
+  auto rig = loadRig(good);
+  ASSERT_TRUE(rig) << rig.error().message;
+  const StereoRig ref = sampleRig();
+  EXPECT_EQ(rig->left.numDistortion(), 5);
+  EXPECT_EQ(rig->right.numDistortion(), 8);
+  for (int i = 0; i < 9; ++i) EXPECT_EQ(rig->left.k().val[i], ref.left.k().val[i]);
+  for (int i = 0; i < 8; ++i) EXPECT_EQ(rig->right.dist()[i], ref.right.dist()[i]);
+  for (int i = 0; i < 9; ++i) EXPECT_EQ(rig->r.val[i], ref.r.val[i]);
+  EXPECT_EQ(rig->t, ref.t);
+  EXPECT_EQ(rig->rms, ref.rms);
+  EXPECT_EQ(rig->left.imageSize(), cv::Size(1360, 1024));
+}
+
+TEST_F(RigFile, OpenCvReadsTheStereoCalibKeys) {
+  cv::FileStorage fs(good, cv::FileStorage::READ);
+  cv::Mat m1, d1, m2, d2, r, t;
+  fs["M1"] >> m1;
+  fs["D1"] >> d1;
+  fs["M2"] >> m2;
+  fs["D2"] >> d2;
+  fs["R"] >> r;
+  fs["T"] >> t;
+  EXPECT_EQ(m1.size(), cv::Size(3, 3));
+  EXPECT_EQ(d2.total(), 8U);
+  EXPECT_DOUBLE_EQ(t.at<double>(0), -60.0);
+  EXPECT_DOUBLE_EQ(static_cast<double>(fs["rms"]), 0.21);
+}
+
+TEST_F(RigFile, MissingFile) {
+  auto rig = loadRig(dir / "nope.yaml");
+  ASSERT_FALSE(rig);
+  EXPECT_NE(rig.error().message.find("nope.yaml"), std::string::npos);
+  EXPECT_NE(rig.error().message.find("not found"), std::string::npos);
+}
+
+TEST_F(RigFile, NotYaml) { expectError("this is not\n  yaml: [at all", "not valid OpenCV YAML|cannot open"); }
+
+TEST_F(RigFile, Truncated) {
+  const std::string t = text();
+  expectError(t.substr(0, t.find("M2:") + 40), "truncated|malformed|key 'M2'|not valid");
+}
+
+TEST_F(RigFile, EmptyFile) { expectError("", "not valid|cannot open|missing"); }
+
+TEST_F(RigFile, MissingKeys) {
+  for (const char* key : {"M1", "D1", "M2", "D2", "R", "T", "rms", "image_size"}) {
+    SCOPED_TRACE(key);
+    expectError(removeKey(key), std::string("key '") + key + "' is missing");
+  }
+}
+
+TEST_F(RigFile, WrongMatrixSize) {
+  expectError(replaceKey("M1", "M1: !!opencv-matrix\n   rows: 2\n   cols: 3\n   dt: d\n   data: [ 1, 0, 1, 0, 1, 1 ]"),
+              "key 'M1': expected a 3x3 matrix, got 2x3");
+  expectError(replaceKey("D2", "D2: !!opencv-matrix\n   rows: 1\n   cols: 6\n   dt: d\n   data: [ 0, 0, 0, 0, 0, 0 ]"),
+              "key 'D2': expected 4, 5 or 8 distortion coefficients");
+  expectError(replaceKey("T", "T: !!opencv-matrix\n   rows: 2\n   cols: 1\n   dt: d\n   data: [ 1, 0 ]"),
+              "key 'T': expected a 3x1 vector");
+}
+
+TEST_F(RigFile, NonPositiveFocalLength) {
+  expectError(replaceKey("M2", "M2: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ -5380, 0, 690, 0, 5380, 505, 0, 0, 1 ]"),
+              "key 'M2': focal lengths must be positive");
+}
+
+TEST_F(RigFile, SkewOrBadLastRow) {
+  expectError(replaceKey("M1", "M1: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 5380, 3, 690, 0, 5380, 505, 0, 0, 1 ]"),
+              "key 'M1': camera matrix must be");
+}
+
+TEST_F(RigFile, NotARotation) {
+  expectError(replaceKey("R", "R: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1, 0.1, 0, 0, 1, 0, 0, 0, 1 ]"),
+              "key 'R': not a rotation matrix");
+  expectError(replaceKey("R", "R: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ -1, 0, 0, 0, 1, 0, 0, 0, 1 ]"),
+              "key 'R': not a rotation matrix .*det = -1");
+}
+
+TEST_F(RigFile, NaNValues) {
+  expectError(replaceKey("T", "T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [ .Nan, 0, 0 ]"),
+              "key 'T': contains NaN");
+  expectError(replaceKey("D1", "D1: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ 0, .Inf, 0, 0, 0 ]"),
+              "key 'D1': contains NaN or infinity");
+}
+
+TEST_F(RigFile, WrongTypes) {
+  expectError(replaceKey("M1", "M1: 5"), "key 'M1': expected an opencv-matrix, got a scalar");
+  expectError(replaceKey("image_size", "image_size: [ 1360 ]"), "key 'image_size': expected \\[width, height\\]");
+  expectError(replaceKey("image_size", "image_size: [ 1360, -4 ]"), "key 'image_size': must be positive");
+  expectError(replaceKey("rms", "rms: hello"), "key 'rms': expected a number");
+  expectError(replaceKey("rms", "rms: -1.0"), "key 'rms': must be a finite non-negative");
+}
+
+TEST_F(RigFile, ZeroBaseline) {
+  expectError(replaceKey("T", "T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [ 0, 0, 0 ]"),
+              "key 'T': baseline is zero");
+}
+
+TEST(RigSave, RefusesAnInvalidRig) {
+  test::TempDir dir;
+  StereoRig rig = sampleRig();
+  rig.r(0, 1) = 0.5;
+  auto ok = saveRig(rig, dir / "x.yaml");
+  ASSERT_FALSE(ok);
+  EXPECT_NE(ok.error().message.find("not a rotation"), std::string::npos);
+  auto unwritable = saveRig(sampleRig(), "/proc/definitely/not/here.yaml");
+  ASSERT_FALSE(unwritable);
+  EXPECT_NE(unwritable.error().message.find("/proc/definitely/not/here.yaml"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace pulsetrack::vision

@@ -1,0 +1,15 @@
+#pragma once
+// The `pulsetrack` subcommands. Each registers its options on the CLI11 app and returns the
+// process exit code when run: 0 success, 1 failure (a message on stderr says what and where).
+
+#include <CLI/CLI.hpp>
+#include <functional>
+
+namespace pulsetrack::tools {
+
+using CommandRunner = std::function<int()>;
+
+// Registers `calibrate` and returns what runs it once options are parsed.
+CommandRunner addCalibrateCommand(CLI::App& app);
+
+}  // namespace pulsetrack::tools

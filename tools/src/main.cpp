@@ -1,0 +1,25 @@
+// pulsetrack: the offline tools of the pulsetrack system, one subcommand each.
+
+#include <fmt/format.h>
+
+#include <CLI/CLI.hpp>
+#include <map>
+#include <string>
+
+#include "pulsetrack/tools/commands.hpp"
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "pulsetrack: stereo tracking of the exposed brain surface (calibration, recording, "
+      "replay, simulation, validation and motion analysis tools).",
+      "pulsetrack"};
+  app.set_version_flag("--version", std::string("pulsetrack ") + PULSETRACK_VERSION);
+  app.require_subcommand(1);
+  std::map<std::string, pulsetrack::tools::CommandRunner> runners;
+  runners["calibrate"] = pulsetrack::tools::addCalibrateCommand(app);
+  CLI11_PARSE(app, argc, argv);
+  for (const CLI::App* sub : app.get_subcommands()) {
+    return runners.at(sub->get_name())();
+  }
+  return 2;
+}

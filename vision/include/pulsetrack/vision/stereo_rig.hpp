@@ -1,0 +1,62 @@
+#pragma once
+// A calibrated stereo pair: two CameraModels and the rigid transform (R, T) that maps
+// left-camera coordinates to right-camera coordinates, x_r = R x_l + T (OpenCV's
+// stereoCalibrate convention). The left camera frame is the rig's frame {C}; lengths are in the
+// calibration's unit (mm for every rig pulsetrack ships).
+//
+// Files: OpenCV FileStorage YAML with the keys of OpenCV's stereo_calib sample
+// (M1 D1 M2 D2 R T) plus image_size and rms, so OpenCV and ROS tools read it unchanged.
+
+#include <filesystem>
+#include <opencv2/core/matx.hpp>
+#include <string>
+
+#include "pulsetrack/vision/camera_model.hpp"
+#include "pulsetrack/vision/error.hpp"
+
+namespace pulsetrack::vision {
+
+struct StereoRig {
+  CameraModel left;
+  CameraModel right;
+  cv::Matx33d r = cv::Matx33d::eye();  // left -> right rotation
+  cv::Vec3d t;                         // left -> right translation
+  double rms = 0.0;                    // stereo reprojection RMS of the calibration, px
+
+  [[nodiscard]] double baseline() const noexcept { return cv::norm(t); }
+  // The right camera's centre in the left frame: -R^T T.
+  [[nodiscard]] cv::Vec3d rightCentre() const noexcept { return -(r.t() * t); }
+
+  // Eq. (2) for each camera, both rays expressed in the left frame {C}.
+  [[nodiscard]] Ray backProjectLeft(cv::Vec2d pixel) const noexcept { return left.backProject(pixel); }
+  [[nodiscard]] Ray backProjectRight(cv::Vec2d pixel) const noexcept;
+
+  // A point in the left frame {C} -> pixel in each camera.
+  [[nodiscard]] cv::Vec2d projectLeft(const cv::Vec3d& p) const noexcept { return left.project(p); }
+  [[nodiscard]] cv::Vec2d projectRight(const cv::Vec3d& p) const noexcept {
+    return right.project(r * p + t);
+  }
+
+  // E = [T]x R and F = K2^-T E K1^-1, for undistorted pixel coordinates (cv::undistortPoints
+  // with P = K), as stereoCalibrate returns them.
+  [[nodiscard]] cv::Matx33d essential() const noexcept;
+  [[nodiscard]] cv::Matx33d fundamental() const noexcept;
+
+  // Distance in px of the right pixel from the epipolar line of the left pixel and the reverse,
+  // both on undistorted pixel coordinates; returns {left->right line distance, right->left}.
+  [[nodiscard]] cv::Vec2d epipolarDistances(cv::Vec2d left_px, cv::Vec2d right_px) const noexcept;
+};
+
+// Eq. (3): the point midway along the shortest segment between two rays, solved in closed form.
+// Returns NaN when the rays are parallel.
+[[nodiscard]] cv::Vec3d midpoint(const Ray& a, const Ray& b) noexcept;
+
+// Checks what a loaded or computed rig must satisfy: positive focal lengths, zero skew, finite
+// values, R a rotation (|R^T R - I| < 1e-6, det +1), non-zero baseline, positive image size.
+// `where` names the source in messages (a file path, or "calibration").
+[[nodiscard]] Result<void> validateRig(const StereoRig& rig, const std::string& where);
+
+[[nodiscard]] Result<StereoRig> loadRig(const std::filesystem::path& path);
+[[nodiscard]] Result<void> saveRig(const StereoRig& rig, const std::filesystem::path& path);
+
+}  // namespace pulsetrack::vision
