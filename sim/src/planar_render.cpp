@@ -14,9 +14,11 @@ CameraRays::CameraRays(const vision::CameraModel& camera, int supersample)
   cv::parallel_for_(cv::Range(0, normalized_.rows), [&](const cv::Range& rows) {
     for (int yi = rows.start; yi < rows.end; ++yi) {
       auto* out = normalized_.ptr<cv::Vec2f>(yi);
-      const double v = static_cast<double>(yi / s) + first + (yi % s) * step;
+      const int pixel_y = yi / s;  // the output pixel, then the sub-pixel within it
+      const double v = pixel_y + first + (yi % s) * step;
       for (int xi = 0; xi < normalized_.cols; ++xi) {
-        const double u = static_cast<double>(xi / s) + first + (xi % s) * step;
+        const int pixel_x = xi / s;
+        const double u = pixel_x + first + (xi % s) * step;
         const cv::Vec2d n = camera.undistortToNormalized({u, v});
         out[xi] = cv::Vec2f(static_cast<float>(n[0]), static_cast<float>(n[1]));
       }

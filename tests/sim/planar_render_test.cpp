@@ -35,9 +35,10 @@ cv::Mat discTexture(std::vector<cv::Point2d>& centres_mm) {
       const int shift = 8;
       const double px = (c.x + kHalf) * kPxPerMm - 0.5;
       const double py = (c.y + kHalf) * kPxPerMm - 0.5;
-      cv::circle(tex, cv::Point(static_cast<int>(px * (1 << shift)), static_cast<int>(py * (1 << shift))),
-                 static_cast<int>(0.6 * kPxPerMm * (1 << shift)), cv::Scalar(20), cv::FILLED,
-                 cv::LINE_AA, shift);
+      cv::circle(
+          tex, cv::Point(static_cast<int>(px * (1 << shift)), static_cast<int>(py * (1 << shift))),
+          static_cast<int>(0.6 * kPxPerMm * (1 << shift)), cv::Scalar(20), cv::FILLED, cv::LINE_AA,
+          shift);
     }
   }
   return tex;
@@ -47,7 +48,7 @@ cv::Matx33d textureFromPlate() {
   return {kPxPerMm, 0, kHalf * kPxPerMm - 0.5, 0, kPxPerMm, kHalf * kPxPerMm - 0.5, 0, 0, 1};
 }
 
-PlaneView pose(double rx_deg, double ry_deg, double rz_deg, cv::Vec3d t) {
+PlaneView pose(double rx_deg, double ry_deg, double rz_deg, const cv::Vec3d& t) {
   cv::Matx33d r;
   cv::Rodrigues(cv::Vec3d(rx_deg, ry_deg, rz_deg) * (CV_PI / 180.0), r);
   return {r, t};

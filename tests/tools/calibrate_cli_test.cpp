@@ -75,8 +75,10 @@ TEST(CalibrateCli, ClearErrors) {
   // Unreadable image and different sizes.
   std::filesystem::create_directories(dir / "imgs");
   for (const char* n : {"01", "02", "03", "04", "05", "06"}) {
-    std::filesystem::copy_file(sampleDir() + "/left" + n + ".jpg", dir / ("imgs/left" + std::string(n) + ".jpg"));
-    std::filesystem::copy_file(sampleDir() + "/right" + n + ".jpg", dir / ("imgs/right" + std::string(n) + ".jpg"));
+    std::filesystem::copy_file(sampleDir() + "/left" + n + ".jpg",
+                               dir / ("imgs/left" + std::string(n) + ".jpg"));
+    std::filesystem::copy_file(sampleDir() + "/right" + n + ".jpg",
+                               dir / ("imgs/right" + std::string(n) + ".jpg"));
   }
   std::ofstream(dir / "imgs/right03.jpg", std::ios::trunc) << "garbage";
   r = test::run(calibrate(dir / "imgs/left*.jpg", dir / "imgs/right*.jpg", out));
@@ -90,7 +92,8 @@ TEST(CalibrateCli, ClearErrors) {
   std::filesystem::copy_file(sampleDir() + "/right03.jpg", dir / "imgs/right03.jpg",
                              std::filesystem::copy_options::overwrite_existing);
   for (const char* n : {"04", "05"}) {
-    cv::imwrite(dir / ("imgs/left" + std::string(n) + ".jpg"), cv::Mat(480, 640, CV_8UC1, cv::Scalar(128)));
+    cv::imwrite(dir / ("imgs/left" + std::string(n) + ".jpg"),
+                cv::Mat(480, 640, CV_8UC1, cv::Scalar(128)));
   }
   r = test::run(calibrate(dir / "imgs/left*.jpg", dir / "imgs/right*.jpg", out));
   EXPECT_EQ(r.exit_code, 1);

@@ -24,7 +24,8 @@ TEST(WildcardKey, IsThePartTheWildcardsMatch) {
 
 TEST(PairImages, PairsByKeyNotByPosition) {
   test::TempDir dir;
-  for (const char* n : {"left01.png", "left02.png", "left10.png", "right01.png", "right02.png", "right10.png"}) {
+  for (const char* n :
+       {"left01.png", "left02.png", "left10.png", "right01.png", "right02.png", "right10.png"}) {
     touch(dir / n);
   }
   auto pairs = pairImages(dir / "left*.png", dir / "right*.png");
@@ -44,7 +45,8 @@ TEST(PairImages, NoMatchNamesTheGlob) {
 
 TEST(PairImages, UnpairedImagesAreListed) {
   test::TempDir dir;
-  for (const char* n : {"left01.png", "left02.png", "left03.png", "right01.png", "right03.png", "right04.png"}) {
+  for (const char* n :
+       {"left01.png", "left02.png", "left03.png", "right01.png", "right03.png", "right04.png"}) {
     touch(dir / n);
   }
   auto pairs = pairImages(dir / "left*.png", dir / "right*.png");

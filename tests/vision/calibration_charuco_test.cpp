@@ -102,7 +102,8 @@ TEST(CharucoCalibration, RenderedViewsWithOcclusionRecoverTheRig) {
       for (int i = 0; i < static_cast<int>(img.total()); ++i) {
         noisy.data[i] = cv::saturate_cast<uchar>(img.data[i] + noise(rng));
       }
-      const std::string path = dir / ((side == 0 ? "left" : "right") + std::to_string(100 + v) + ".png");
+      const std::string path =
+          dir / ((side == 0 ? "left" : "right") + std::to_string(100 + v) + ".png");
       ASSERT_TRUE(cv::imwrite(path, noisy));
       (side == 0 ? pairs.emplace_back(path, "").first : pairs.back().second) = path;
     }

@@ -74,7 +74,8 @@ TEST(CameraModel, DistortionJacobianMatchesFiniteDifferences) {
     for (int c = 0; c < 2; ++c) {
       cv::Vec2d d(0, 0);
       d[c] = h;
-      const cv::Vec2d fd = (cam.distortNormalized(xy + d) - cam.distortNormalized(xy - d)) / (2 * h);
+      const cv::Vec2d fd =
+          (cam.distortNormalized(xy + d) - cam.distortNormalized(xy - d)) / (2 * h);
       EXPECT_NEAR(j(0, c), fd[0], 1e-7);
       EXPECT_NEAR(j(1, c), fd[1], 1e-7);
     }
@@ -91,6 +92,7 @@ TEST(CameraModel, UndistortMatchesUndistortPointsConverged) {
   for (const Lens& lens : kLenses) {
     const CameraModel cam = makeCamera(lens);
     std::vector<cv::Point2d> px;
+    px.reserve(502);
     for (int i = 0; i < 500; ++i) px.emplace_back(u(rng), v(rng));
     px.emplace_back(0, 0);
     px.emplace_back(kSize.width - 1, kSize.height - 1);

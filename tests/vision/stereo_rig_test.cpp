@@ -55,7 +55,8 @@ class RigFile : public ::testing::Test {
     const size_t start = t.find("\n" + key + ":");
     EXPECT_NE(start, std::string::npos) << key;
     size_t end = t.find('\n', start + 1);
-    while (end != std::string::npos && end + 1 < t.size() && t[end + 1] == ' ') end = t.find('\n', end + 1);
+    while (end != std::string::npos && end + 1 < t.size() && t[end + 1] == ' ')
+      end = t.find('\n', end + 1);
     return t.substr(0, start + 1) + block + (end == std::string::npos ? "" : t.substr(end));
   }
   std::string removeKey(const std::string& key) const { return replaceKey(key, "dummy: 0"); }
@@ -97,7 +98,9 @@ TEST_F(RigFile, MissingFile) {
   EXPECT_NE(rig.error().message.find("not found"), std::string::npos);
 }
 
-TEST_F(RigFile, NotYaml) { expectError("this is not\n  yaml: [at all", "not valid OpenCV YAML|cannot open"); }
+TEST_F(RigFile, NotYaml) {
+  expectError("this is not\n  yaml: [at all", "not valid OpenCV YAML|cannot open");
+}
 
 TEST_F(RigFile, Truncated) {
   const std::string t = text();
@@ -114,49 +117,72 @@ TEST_F(RigFile, MissingKeys) {
 }
 
 TEST_F(RigFile, WrongMatrixSize) {
-  expectError(replaceKey("M1", "M1: !!opencv-matrix\n   rows: 2\n   cols: 3\n   dt: d\n   data: [ 1, 0, 1, 0, 1, 1 ]"),
-              "key 'M1': expected a 3x3 matrix, got 2x3");
-  expectError(replaceKey("D2", "D2: !!opencv-matrix\n   rows: 1\n   cols: 6\n   dt: d\n   data: [ 0, 0, 0, 0, 0, 0 ]"),
-              "key 'D2': expected 4, 5 or 8 distortion coefficients");
-  expectError(replaceKey("T", "T: !!opencv-matrix\n   rows: 2\n   cols: 1\n   dt: d\n   data: [ 1, 0 ]"),
-              "key 'T': expected a 3x1 vector");
+  expectError(
+      replaceKey(
+          "M1",
+          "M1: !!opencv-matrix\n   rows: 2\n   cols: 3\n   dt: d\n   data: [ 1, 0, 1, 0, 1, 1 ]"),
+      "key 'M1': expected a 3x3 matrix, got 2x3");
+  expectError(
+      replaceKey(
+          "D2",
+          "D2: !!opencv-matrix\n   rows: 1\n   cols: 6\n   dt: d\n   data: [ 0, 0, 0, 0, 0, 0 ]"),
+      "key 'D2': expected 4, 5 or 8 distortion coefficients");
+  expectError(
+      replaceKey("T", "T: !!opencv-matrix\n   rows: 2\n   cols: 1\n   dt: d\n   data: [ 1, 0 ]"),
+      "key 'T': expected a 3x1 vector");
 }
 
 TEST_F(RigFile, NonPositiveFocalLength) {
-  expectError(replaceKey("M2", "M2: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ -5380, 0, 690, 0, 5380, 505, 0, 0, 1 ]"),
+  expectError(replaceKey("M2",
+                         "M2: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ -5380, "
+                         "0, 690, 0, 5380, 505, 0, 0, 1 ]"),
               "key 'M2': focal lengths must be positive");
 }
 
 TEST_F(RigFile, SkewOrBadLastRow) {
-  expectError(replaceKey("M1", "M1: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 5380, 3, 690, 0, 5380, 505, 0, 0, 1 ]"),
+  expectError(replaceKey("M1",
+                         "M1: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 5380, "
+                         "3, 690, 0, 5380, 505, 0, 0, 1 ]"),
               "key 'M1': camera matrix must be");
 }
 
 TEST_F(RigFile, NotARotation) {
-  expectError(replaceKey("R", "R: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1, 0.1, 0, 0, 1, 0, 0, 0, 1 ]"),
+  expectError(replaceKey("R",
+                         "R: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1, 0.1, "
+                         "0, 0, 1, 0, 0, 0, 1 ]"),
               "key 'R': not a rotation matrix");
-  expectError(replaceKey("R", "R: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ -1, 0, 0, 0, 1, 0, 0, 0, 1 ]"),
+  expectError(replaceKey("R",
+                         "R: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ -1, 0, "
+                         "0, 0, 1, 0, 0, 0, 1 ]"),
               "key 'R': not a rotation matrix .*det = -1");
 }
 
 TEST_F(RigFile, NaNValues) {
-  expectError(replaceKey("T", "T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [ .Nan, 0, 0 ]"),
-              "key 'T': contains NaN");
-  expectError(replaceKey("D1", "D1: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ 0, .Inf, 0, 0, 0 ]"),
-              "key 'D1': contains NaN or infinity");
+  expectError(
+      replaceKey("T",
+                 "T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [ .Nan, 0, 0 ]"),
+      "key 'T': contains NaN");
+  expectError(
+      replaceKey(
+          "D1",
+          "D1: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ 0, .Inf, 0, 0, 0 ]"),
+      "key 'D1': contains NaN or infinity");
 }
 
 TEST_F(RigFile, WrongTypes) {
   expectError(replaceKey("M1", "M1: 5"), "key 'M1': expected an opencv-matrix, got a scalar");
-  expectError(replaceKey("image_size", "image_size: [ 1360 ]"), "key 'image_size': expected \\[width, height\\]");
-  expectError(replaceKey("image_size", "image_size: [ 1360, -4 ]"), "key 'image_size': must be positive");
+  expectError(replaceKey("image_size", "image_size: [ 1360 ]"),
+              "key 'image_size': expected \\[width, height\\]");
+  expectError(replaceKey("image_size", "image_size: [ 1360, -4 ]"),
+              "key 'image_size': must be positive");
   expectError(replaceKey("rms", "rms: hello"), "key 'rms': expected a number");
   expectError(replaceKey("rms", "rms: -1.0"), "key 'rms': must be a finite non-negative");
 }
 
 TEST_F(RigFile, ZeroBaseline) {
-  expectError(replaceKey("T", "T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [ 0, 0, 0 ]"),
-              "key 'T': baseline is zero");
+  expectError(
+      replaceKey("T", "T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [ 0, 0, 0 ]"),
+      "key 'T': baseline is zero");
 }
 
 TEST(RigSave, RefusesAnInvalidRig) {

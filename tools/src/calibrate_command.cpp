@@ -59,7 +59,8 @@ vision::Result<void> writeViewsCsv(const vision::CalibrationResult& result,
 
 int runCalibrate(const CalibrateArgs& a) {
   vision::PatternSpec spec;
-  spec.kind = a.pattern == "charuco" ? vision::PatternKind::kCharuco : vision::PatternKind::kChessboard;
+  spec.kind =
+      a.pattern == "charuco" ? vision::PatternKind::kCharuco : vision::PatternKind::kChessboard;
   spec.cols = a.cols;
   spec.rows = a.rows;
   spec.square = a.square;
@@ -70,7 +71,8 @@ int runCalibrate(const CalibrateArgs& a) {
 
   auto pairs = pairImages(a.left, a.right);
   if (!pairs) return error(pairs.error().message);
-  if (!a.quiet) fmt::print(stderr, "detecting the {} in {} image pairs\n", a.pattern, pairs->size());
+  if (!a.quiet)
+    fmt::print(stderr, "detecting the {} in {} image pairs\n", a.pattern, pairs->size());
 
   cv::Size size;
   const size_t expected = target->objectPoints().size();
@@ -106,7 +108,8 @@ int runCalibrate(const CalibrateArgs& a) {
       "RMS left camera     {:.4f} px\n"
       "RMS right camera    {:.4f} px\n"
       "RMS stereo          {:.4f} px\n"
-      "epipolar error      {:.4f} px mean per image ({:.4f} px as OpenCV's stereo_calib sums both)\n"
+      "epipolar error      {:.4f} px mean per image ({:.4f} px as OpenCV's stereo_calib sums "
+      "both)\n"
       "baseline            {:.4f} (units of --square)\n"
       "focal length        left {:.2f} x {:.2f} px, right {:.2f} x {:.2f} px\n"
       "rig written to      {}\n",
@@ -117,7 +120,8 @@ int runCalibrate(const CalibrateArgs& a) {
   if (!a.report.empty()) {
     std::error_code ec;
     std::filesystem::create_directories(a.report, ec);
-    if (ec) return error(fmt::format("{}: cannot create report folder: {}", a.report, ec.message()));
+    if (ec)
+      return error(fmt::format("{}: cannot create report folder: {}", a.report, ec.message()));
     const std::filesystem::path png = std::filesystem::path(a.report) / "calibration_report.png";
     const cv::Mat fig = vision::renderCalibrationReport(*result, *views, size);
     bool written = false;

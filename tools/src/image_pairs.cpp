@@ -22,7 +22,8 @@ vision::Result<std::vector<std::string>> globFiles(const std::string& pattern, c
     }
   }
   globfree(&g);
-  if (rc == GLOB_ABORTED) return fail(fmt::format("{} '{}': cannot read the folder", what, pattern));
+  if (rc == GLOB_ABORTED)
+    return fail(fmt::format("{} '{}': cannot read the folder", what, pattern));
   if (files.empty()) return fail(fmt::format("{} '{}': no file matches", what, pattern));
   std::sort(files.begin(), files.end());
   return files;
@@ -30,7 +31,7 @@ vision::Result<std::vector<std::string>> globFiles(const std::string& pattern, c
 
 std::string wildcardKey(const std::string& pattern, const std::string& path) {
   const std::string pat = std::filesystem::path(pattern).filename().string();
-  const std::string name = std::filesystem::path(path).filename().string();
+  std::string name = std::filesystem::path(path).filename().string();
   const size_t first = pat.find_first_of("*?[");
   if (first == std::string::npos) return {};
   // The suffix starts after the last wildcard (a bracket expression ends at its ']').
@@ -40,7 +41,8 @@ std::string wildcardKey(const std::string& pattern, const std::string& path) {
   if (name.size() < prefix_len + suffix_len) return name;
   std::string key = name.substr(prefix_len, name.size() - prefix_len - suffix_len);
   // Frame numbers pair by value: 'left0*.jpg' and 'right*.jpg' pair left01 with right01.
-  if (!key.empty() && std::all_of(key.begin(), key.end(), [](char c) { return c >= '0' && c <= '9'; })) {
+  if (!key.empty() &&
+      std::all_of(key.begin(), key.end(), [](char c) { return c >= '0' && c <= '9'; })) {
     const size_t nz = key.find_first_not_of('0');
     key = nz == std::string::npos ? "0" : key.substr(nz);
   }
@@ -74,9 +76,10 @@ vision::Result<std::vector<std::pair<std::string, std::string>>> pairImages(
     std::string list;
     for (size_t i = 0; i < unpaired.size() && i < 8; ++i) list += "\n  " + unpaired[i];
     if (unpaired.size() > 8) list += fmt::format("\n  ... and {} more", unpaired.size() - 8);
-    return fail(fmt::format("{} unpaired image(s) (left and right are paired by the part of the "
-                            "name the wildcards match):{}",
-                            unpaired.size(), list));
+    return fail(
+        fmt::format("{} unpaired image(s) (left and right are paired by the part of the "
+                    "name the wildcards match):{}",
+                    unpaired.size(), list));
   }
   return pairs;
 }

@@ -8,7 +8,7 @@
 
 #include "pulsetrack/tools/commands.hpp"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App app{
       "pulsetrack: stereo tracking of the exposed brain surface (calibration, recording, "
       "replay, simulation, validation and motion analysis tools).",
@@ -22,4 +22,8 @@ int main(int argc, char** argv) {
     return runners.at(sub->get_name())();
   }
   return 2;
+} catch (const std::exception& e) {
+  // Every command reports its own errors; this is the last line of defence, never a crash.
+  fmt::print(stderr, "pulsetrack: internal error: {}\n", e.what());
+  return 1;
 }

@@ -18,14 +18,22 @@ namespace {
 
 Result<cv::Ptr<cv::aruco::Dictionary>> dictionaryByName(const std::string& name) {
   static const std::map<std::string, cv::aruco::PREDEFINED_DICTIONARY_NAME> kNames = {
-      {"DICT_4X4_50", cv::aruco::DICT_4X4_50},     {"DICT_4X4_100", cv::aruco::DICT_4X4_100},
-      {"DICT_4X4_250", cv::aruco::DICT_4X4_250},   {"DICT_4X4_1000", cv::aruco::DICT_4X4_1000},
-      {"DICT_5X5_50", cv::aruco::DICT_5X5_50},     {"DICT_5X5_100", cv::aruco::DICT_5X5_100},
-      {"DICT_5X5_250", cv::aruco::DICT_5X5_250},   {"DICT_5X5_1000", cv::aruco::DICT_5X5_1000},
-      {"DICT_6X6_50", cv::aruco::DICT_6X6_50},     {"DICT_6X6_100", cv::aruco::DICT_6X6_100},
-      {"DICT_6X6_250", cv::aruco::DICT_6X6_250},   {"DICT_6X6_1000", cv::aruco::DICT_6X6_1000},
-      {"DICT_7X7_50", cv::aruco::DICT_7X7_50},     {"DICT_7X7_100", cv::aruco::DICT_7X7_100},
-      {"DICT_7X7_250", cv::aruco::DICT_7X7_250},   {"DICT_7X7_1000", cv::aruco::DICT_7X7_1000},
+      {"DICT_4X4_50", cv::aruco::DICT_4X4_50},
+      {"DICT_4X4_100", cv::aruco::DICT_4X4_100},
+      {"DICT_4X4_250", cv::aruco::DICT_4X4_250},
+      {"DICT_4X4_1000", cv::aruco::DICT_4X4_1000},
+      {"DICT_5X5_50", cv::aruco::DICT_5X5_50},
+      {"DICT_5X5_100", cv::aruco::DICT_5X5_100},
+      {"DICT_5X5_250", cv::aruco::DICT_5X5_250},
+      {"DICT_5X5_1000", cv::aruco::DICT_5X5_1000},
+      {"DICT_6X6_50", cv::aruco::DICT_6X6_50},
+      {"DICT_6X6_100", cv::aruco::DICT_6X6_100},
+      {"DICT_6X6_250", cv::aruco::DICT_6X6_250},
+      {"DICT_6X6_1000", cv::aruco::DICT_6X6_1000},
+      {"DICT_7X7_50", cv::aruco::DICT_7X7_50},
+      {"DICT_7X7_100", cv::aruco::DICT_7X7_100},
+      {"DICT_7X7_250", cv::aruco::DICT_7X7_250},
+      {"DICT_7X7_1000", cv::aruco::DICT_7X7_1000},
       {"DICT_ARUCO_ORIGINAL", cv::aruco::DICT_ARUCO_ORIGINAL},
   };
   const auto it = kNames.find(name);
@@ -81,9 +89,10 @@ Result<CalibrationTarget> CalibrationTarget::create(const PatternSpec& spec) {
     return fail(fmt::format("charuco: need at least 3x3 squares, got {}x{}", spec.cols, spec.rows));
   }
   if (!(spec.marker > 0.0) || spec.marker >= spec.square) {
-    return fail(fmt::format("charuco: marker size must be positive and smaller than the square "
-                            "({} >= {})",
-                            spec.marker, spec.square));
+    return fail(
+        fmt::format("charuco: marker size must be positive and smaller than the square "
+                    "({} >= {})",
+                    spec.marker, spec.square));
   }
   auto dict = dictionaryByName(spec.dictionary);
   if (!dict) return std::unexpected(dict.error());
@@ -109,8 +118,8 @@ Detection CalibrationTarget::detect(const cv::Mat& grey) const {
         cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_EXHAUSTIVE | cv::CALIB_CB_ACCURACY);
     if (!found) {
       // The classic detector copes with some blur the sector-based one rejects.
-      found = cv::findChessboardCorners(grey, size, corners,
-                                        cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE);
+      found = cv::findChessboardCorners(
+          grey, size, corners, cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE);
       if (found) refineCorners(grey, corners, 0.35 * minSpacing(corners));
     }
     if (!found) return det;
@@ -198,7 +207,9 @@ Result<std::vector<ViewInput>> detectViews(
       } catch (const cv::Exception& e) {
         return fail(fmt::format("{}: cannot read image: {}", path, e.err));
       }
-      if (grey.empty()) return fail(fmt::format("{}: unreadable image (missing, empty or not an image format OpenCV decodes)", path));
+      if (grey.empty())
+        return fail(fmt::format(
+            "{}: unreadable image (missing, empty or not an image format OpenCV decodes)", path));
       if (image_size.empty()) {
         image_size = grey.size();
         size_source = path;
@@ -276,14 +287,14 @@ Result<Solve> solve(const StereoSet& set, cv::Size size, const CalibrationOption
                                          1e-12);
   try {
     std::vector<cv::Mat> rv, tv;
-    s.mono_left = cv::calibrateCamera(set.object, set.left, size, s.k1, s.d1, rv, tv, model,
-                                      mono_criteria);
-    s.mono_right = cv::calibrateCamera(set.object, set.right, size, s.k2, s.d2, rv, tv, model,
-                                       mono_criteria);
+    s.mono_left =
+        cv::calibrateCamera(set.object, set.left, size, s.k1, s.d1, rv, tv, model, mono_criteria);
+    s.mono_right =
+        cv::calibrateCamera(set.object, set.right, size, s.k2, s.d2, rv, tv, model, mono_criteria);
     cv::Mat e, f;
     // Stereo transform with the intrinsics fixed, then everything refined together.
-    cv::stereoCalibrate(set.object, set.left, set.right, s.k1, s.d1, s.k2, s.d2, size, s.r, s.t,
-                        e, f, cv::CALIB_FIX_INTRINSIC | model, stereo_criteria);
+    cv::stereoCalibrate(set.object, set.left, set.right, s.k1, s.d1, s.k2, s.d2, size, s.r, s.t, e,
+                        f, cv::CALIB_FIX_INTRINSIC | model, stereo_criteria);
     s.stereo = cv::stereoCalibrate(set.object, set.left, set.right, s.k1, s.d1, s.k2, s.d2, size,
                                    s.r, s.t, e, f, s.per_view,
                                    cv::CALIB_USE_INTRINSIC_GUESS | model, stereo_criteria);
@@ -331,8 +342,9 @@ Result<CalibrationResult> calibrateStereo(const std::vector<ViewInput>& views,
   }
   const auto count_active = [&] { return std::count(active.begin(), active.end(), true); };
   if (count_active() < options.min_views) {
-    return fail(fmt::format("pattern found in both images of only {} of {} pairs (need at least {})",
-                            count_active(), views.size(), options.min_views));
+    return fail(
+        fmt::format("pattern found in both images of only {} of {} pairs (need at least {})",
+                    count_active(), views.size(), options.min_views));
   }
 
   Solve s;
@@ -364,10 +376,10 @@ Result<CalibrationResult> calibrateStereo(const std::vector<ViewInput>& views,
     if (static_cast<long>(set.view.size() - worst.size()) < options.min_views) break;
     for (size_t k : worst) {
       active[set.view[k]] = false;
-      result.views[set.view[k]].rejected_because =
-          fmt::format("reprojection error {:.3f} px above the outlier threshold {:.3f} px "
-                      "(median {:.3f} px)",
-                      err[k], threshold, med);
+      result.views[set.view[k]].rejected_because = fmt::format(
+          "reprojection error {:.3f} px above the outlier threshold {:.3f} px "
+          "(median {:.3f} px)",
+          err[k], threshold, med);
     }
   }
 

@@ -14,9 +14,9 @@ namespace {
 
 const cv::Scalar kInk(30, 30, 30);
 const cv::Scalar kGrid(215, 215, 215);
-const cv::Scalar kLeft(180, 110, 30);    // blue-ish (BGR)
-const cv::Scalar kRight(40, 140, 240);   // orange
-const cv::Scalar kReject(40, 40, 200);   // red
+const cv::Scalar kLeft(180, 110, 30);   // blue-ish (BGR)
+const cv::Scalar kRight(40, 140, 240);  // orange
+const cv::Scalar kReject(40, 40, 200);  // red
 
 void text(cv::Mat& img, const std::string& s, cv::Point at, double scale = 0.5,
           const cv::Scalar& colour = kInk, int thickness = 1) {
@@ -24,7 +24,8 @@ void text(cv::Mat& img, const std::string& s, cv::Point at, double scale = 0.5,
 }
 
 cv::Scalar viewColour(size_t i, size_t n) {
-  cv::Mat hsv(1, 1, CV_8UC3, cv::Scalar(static_cast<double>(i * 170 / std::max<size_t>(n, 1)), 220, 210));
+  const double hue = 170.0 * static_cast<double>(i) / static_cast<double>(std::max<size_t>(n, 1));
+  cv::Mat hsv(1, 1, CV_8UC3, cv::Scalar(hue, 220, 210));
   cv::Mat bgr;
   cv::cvtColor(hsv, bgr, cv::COLOR_HSV2BGR);
   const cv::Vec3b c = bgr.at<cv::Vec3b>(0, 0);
@@ -62,7 +63,8 @@ cv::Mat renderCalibrationReport(const CalibrationResult& result,
   }
   text(img, "reprojection RMS per view (px)", {chart.x, chart.y - 10}, 0.5);
   const size_t n = result.views.size();
-  const double slot = static_cast<double>(chart.width) / static_cast<double>(std::max<size_t>(n, 1));
+  const double slot =
+      static_cast<double>(chart.width) / static_cast<double>(std::max<size_t>(n, 1));
   for (size_t i = 0; i < n; ++i) {
     const ViewReport& v = result.views[i];
     const int x0 = chart.x + static_cast<int>(slot * static_cast<double>(i) + slot * 0.15);
@@ -94,7 +96,8 @@ cv::Mat renderCalibrationReport(const CalibrationResult& result,
     const cv::Rect panel(20 + side * (panel_w + 20), py, panel_w, panel_h);
     cv::rectangle(img, panel, cv::Scalar(245, 245, 245), cv::FILLED);
     cv::rectangle(img, panel, kInk, 1);
-    text(img, side == 0 ? "left image: corners of every view" : "right image: corners of every view",
+    text(img,
+         side == 0 ? "left image: corners of every view" : "right image: corners of every view",
          {panel.x, panel.y - 8}, 0.5);
     const double sx = static_cast<double>(panel.width) / image_size.width;
     const double sy = static_cast<double>(panel.height) / image_size.height;
@@ -102,8 +105,10 @@ cv::Mat renderCalibrationReport(const CalibrationResult& result,
       const Detection& d = side == 0 ? views[i].left : views[i].right;
       const cv::Scalar c = result.views[i].used ? viewColour(i, n) : cv::Scalar(170, 170, 170);
       for (const cv::Point2f& p : d.corners) {
-        cv::circle(img, cv::Point(panel.x + static_cast<int>(p.x * sx), panel.y + static_cast<int>(p.y * sy)),
-                   2, c, cv::FILLED, cv::LINE_AA);
+        cv::circle(
+            img,
+            cv::Point(panel.x + static_cast<int>(p.x * sx), panel.y + static_cast<int>(p.y * sy)),
+            2, c, cv::FILLED, cv::LINE_AA);
       }
     }
   }

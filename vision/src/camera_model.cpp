@@ -11,7 +11,7 @@ CameraModel::CameraModel(const cv::Matx33d& k, const double* dist, int num_dist,
   for (int i = 0; i < num_dist && i < kMaxDistortion; ++i) dist_[static_cast<size_t>(i)] = dist[i];
 }
 
-cv::Vec2d CameraModel::distortNormalized(cv::Vec2d xy) const noexcept {
+cv::Vec2d CameraModel::distortNormalized(const cv::Vec2d& xy) const noexcept {
   cv::Matx22d unused;
   return distortNormalized(xy, unused);
 }
@@ -20,7 +20,8 @@ cv::Vec2d CameraModel::distortNormalized(cv::Vec2d xy) const noexcept {
 //   r2 = x^2 + y^2, radial = (1 + k1 r2 + k2 r4 + k3 r6) / (1 + k4 r2 + k5 r4 + k6 r6)
 //   x'' = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
 //   y'' = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
-cv::Vec2d CameraModel::distortNormalized(cv::Vec2d xy, cv::Matx22d& jacobian) const noexcept {
+cv::Vec2d CameraModel::distortNormalized(const cv::Vec2d& xy,
+                                         cv::Matx22d& jacobian) const noexcept {
   const double x = xy[0];
   const double y = xy[1];
   const double k1 = dist_[0], k2 = dist_[1], p1 = dist_[2], p2 = dist_[3], k3 = dist_[4];
@@ -57,7 +58,7 @@ cv::Vec2d CameraModel::project(const cv::Vec3d& point) const noexcept {
   return {k_(0, 0) * d[0] + k_(0, 1) * d[1] + k_(0, 2), k_(1, 1) * d[1] + k_(1, 2)};
 }
 
-cv::Vec2d CameraModel::undistortToNormalized(cv::Vec2d pixel) const noexcept {
+cv::Vec2d CameraModel::undistortToNormalized(const cv::Vec2d& pixel) const noexcept {
   // Distorted normalized coordinates (inverse of K, which may carry a skew term).
   const double yd = (pixel[1] - k_(1, 2)) / k_(1, 1);
   const double xd = (pixel[0] - k_(0, 2) - k_(0, 1) * yd) / k_(0, 0);
@@ -78,12 +79,12 @@ cv::Vec2d CameraModel::undistortToNormalized(cv::Vec2d pixel) const noexcept {
   return xy;
 }
 
-cv::Vec2d CameraModel::undistortPixel(cv::Vec2d pixel) const noexcept {
+cv::Vec2d CameraModel::undistortPixel(const cv::Vec2d& pixel) const noexcept {
   const cv::Vec2d n = undistortToNormalized(pixel);
   return {k_(0, 0) * n[0] + k_(0, 1) * n[1] + k_(0, 2), k_(1, 1) * n[1] + k_(1, 2)};
 }
 
-Ray CameraModel::backProject(cv::Vec2d pixel) const noexcept {
+Ray CameraModel::backProject(const cv::Vec2d& pixel) const noexcept {
   const cv::Vec2d n = undistortToNormalized(pixel);
   return {cv::Vec3d(0, 0, 0), cv::normalize(cv::Vec3d(n[0], n[1], 1.0))};
 }

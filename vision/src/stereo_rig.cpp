@@ -10,7 +10,7 @@
 
 namespace pulsetrack::vision {
 
-Ray StereoRig::backProjectRight(cv::Vec2d pixel) const noexcept {
+Ray StereoRig::backProjectRight(const cv::Vec2d& pixel) const noexcept {
   const Ray in_right = right.backProject(pixel);
   return {rightCentre(), r.t() * in_right.direction};
 }
@@ -24,18 +24,19 @@ cv::Matx33d StereoRig::fundamental() const noexcept {
   return right.k().inv().t() * essential() * left.k().inv();
 }
 
-cv::Vec2d StereoRig::epipolarDistances(cv::Vec2d left_px, cv::Vec2d right_px) const noexcept {
+cv::Vec2d StereoRig::epipolarDistances(const cv::Vec2d& left_px,
+                                       const cv::Vec2d& right_px) const noexcept {
   const cv::Vec2d ul = left.undistortPixel(left_px);
   const cv::Vec2d ur = right.undistortPixel(right_px);
   const cv::Matx33d f = fundamental();
   const cv::Vec3d xl(ul[0], ul[1], 1.0);
   const cv::Vec3d xr(ur[0], ur[1], 1.0);
-  const cv::Vec3d line_in_right = f * xl;        // x_r^T F x_l = 0
+  const cv::Vec3d line_in_right = f * xl;  // x_r^T F x_l = 0
   const cv::Vec3d line_in_left = f.t() * xr;
-  const double d_right = std::abs(line_in_right.dot(xr)) /
-                         std::hypot(line_in_right[0], line_in_right[1]);
-  const double d_left = std::abs(line_in_left.dot(xl)) /
-                        std::hypot(line_in_left[0], line_in_left[1]);
+  const double d_right =
+      std::abs(line_in_right.dot(xr)) / std::hypot(line_in_right[0], line_in_right[1]);
+  const double d_left =
+      std::abs(line_in_left.dot(xl)) / std::hypot(line_in_left[0], line_in_left[1]);
   return {d_right, d_left};
 }
 
@@ -63,18 +64,21 @@ bool allFinite(const cv::Matx33d& m) {
   return true;
 }
 
-Result<void> validateCamera(const CameraModel& cam, const std::string& where,
-                            const char* k_key, const char* d_key) {
+Result<void> validateCamera(const CameraModel& cam, const std::string& where, const char* k_key,
+                            const char* d_key) {
   const cv::Matx33d& k = cam.k();
-  if (!allFinite(k)) return fail(fmt::format("{}: key '{}': camera matrix has NaN or infinite values", where, k_key));
+  if (!allFinite(k))
+    return fail(
+        fmt::format("{}: key '{}': camera matrix has NaN or infinite values", where, k_key));
   if (!(k(0, 0) > 0.0) || !(k(1, 1) > 0.0)) {
     return fail(fmt::format("{}: key '{}': focal lengths must be positive (fx={}, fy={})", where,
                             k_key, k(0, 0), k(1, 1)));
   }
   if (k(0, 1) != 0.0 || k(1, 0) != 0.0 || k(2, 0) != 0.0 || k(2, 1) != 0.0 || k(2, 2) != 1.0) {
-    return fail(fmt::format(
-        "{}: key '{}': camera matrix must be [fx 0 cx; 0 fy cy; 0 0 1] (OpenCV's model has no skew)",
-        where, k_key));
+    return fail(
+        fmt::format("{}: key '{}': camera matrix must be [fx 0 cx; 0 fy cy; 0 0 1] (OpenCV's model "
+                    "has no skew)",
+                    where, k_key));
   }
   for (int i = 0; i < cam.numDistortion(); ++i) {
     if (!std::isfinite(cam.dist()[static_cast<size_t>(i)])) {
@@ -98,15 +102,17 @@ Result<void> validateRig(const StereoRig& rig, const std::string& where) {
   const double orth = cv::norm(rig.r.t() * rig.r - cv::Matx33d::eye(), cv::NORM_INF);
   const double det = cv::determinant(rig.r);
   if (orth > 1e-6 || std::abs(det - 1.0) > 1e-6) {
-    return fail(fmt::format(
-        "{}: key 'R': not a rotation matrix (|R^T R - I| = {:.3g}, det = {:.6f})", where, orth, det));
+    return fail(
+        fmt::format("{}: key 'R': not a rotation matrix (|R^T R - I| = {:.3g}, det = {:.6f})",
+                    where, orth, det));
   }
   if (!std::isfinite(rig.t[0]) || !std::isfinite(rig.t[1]) || !std::isfinite(rig.t[2])) {
     return fail(fmt::format("{}: key 'T': has NaN or infinite values", where));
   }
   if (!(cv::norm(rig.t) > 0.0)) return fail(fmt::format("{}: key 'T': baseline is zero", where));
   if (!std::isfinite(rig.rms) || rig.rms < 0.0) {
-    return fail(fmt::format("{}: key 'rms': must be a finite non-negative number, got {}", where, rig.rms));
+    return fail(
+        fmt::format("{}: key 'rms': must be a finite non-negative number, got {}", where, rig.rms));
   }
   return {};
 }
@@ -127,25 +133,29 @@ Result<cv::Mat> readMatrix(const cv::FileStorage& fs, const std::string& where, 
     return fail(fmt::format("{}: key '{}': not a readable opencv-matrix ({})", where, key, e.err));
   }
   if (m.empty()) return fail(fmt::format("{}: key '{}': empty or malformed matrix", where, key));
-  if (m.channels() != 1) return fail(fmt::format("{}: key '{}': matrix must have one channel", where, key));
+  if (m.channels() != 1)
+    return fail(fmt::format("{}: key '{}': matrix must have one channel", where, key));
   m.convertTo(m, CV_64F);
   for (auto it = m.begin<double>(); it != m.end<double>(); ++it) {
-    if (!std::isfinite(*it)) return fail(fmt::format("{}: key '{}': contains NaN or infinity", where, key));
+    if (!std::isfinite(*it))
+      return fail(fmt::format("{}: key '{}': contains NaN or infinity", where, key));
   }
   return m;
 }
 
-Result<cv::Matx33d> readMatx33(const cv::FileStorage& fs, const std::string& where, const char* key) {
+Result<cv::Matx33d> readMatx33(const cv::FileStorage& fs, const std::string& where,
+                               const char* key) {
   auto m = readMatrix(fs, where, key);
   if (!m) return std::unexpected(m.error());
   if (m->rows != 3 || m->cols != 3) {
-    return fail(fmt::format("{}: key '{}': expected a 3x3 matrix, got {}x{}", where, key, m->rows, m->cols));
+    return fail(fmt::format("{}: key '{}': expected a 3x3 matrix, got {}x{}", where, key, m->rows,
+                            m->cols));
   }
   return cv::Matx33d(m->ptr<double>());
 }
 
-Result<CameraModel> readCamera(const cv::FileStorage& fs, const std::string& where, const char* k_key,
-                               const char* d_key, cv::Size size) {
+Result<CameraModel> readCamera(const cv::FileStorage& fs, const std::string& where,
+                               const char* k_key, const char* d_key, cv::Size size) {
   auto k = readMatx33(fs, where, k_key);
   if (!k) return std::unexpected(k.error());
   auto d = readMatrix(fs, where, d_key);
@@ -175,13 +185,16 @@ Result<StereoRig> loadRig(const std::filesystem::path& path) {
       return fail(fmt::format("{}: cannot open as OpenCV YAML", where));
     }
   } catch (const cv::Exception& e) {
-    return fail(fmt::format("{}: not valid OpenCV YAML (truncated or malformed): {}", where, e.err));
+    return fail(
+        fmt::format("{}: not valid OpenCV YAML (truncated or malformed): {}", where, e.err));
   }
 
   const cv::FileNode size_node = fs["image_size"];
   if (size_node.empty()) return fail(fmt::format("{}: key 'image_size' is missing", where));
-  if (!size_node.isSeq() || size_node.size() != 2 || !size_node[0].isInt() || !size_node[1].isInt()) {
-    return fail(fmt::format("{}: key 'image_size': expected [width, height] as two integers", where));
+  if (!size_node.isSeq() || size_node.size() != 2 || !size_node[0].isInt() ||
+      !size_node[1].isInt()) {
+    return fail(
+        fmt::format("{}: key 'image_size': expected [width, height] as two integers", where));
   }
   const cv::Size size(static_cast<int>(size_node[0]), static_cast<int>(size_node[1]));
 
@@ -198,13 +211,15 @@ Result<StereoRig> loadRig(const std::filesystem::path& path) {
   auto t = readMatrix(fs, where, "T");
   if (!t) return std::unexpected(t.error());
   if (t->total() != 3 || (t->rows != 1 && t->cols != 1)) {
-    return fail(fmt::format("{}: key 'T': expected a 3x1 vector, got {}x{}", where, t->rows, t->cols));
+    return fail(
+        fmt::format("{}: key 'T': expected a 3x1 vector, got {}x{}", where, t->rows, t->cols));
   }
   rig.t = cv::Vec3d(t->ptr<double>());
 
   const cv::FileNode rms = fs["rms"];
   if (rms.empty()) return fail(fmt::format("{}: key 'rms' is missing", where));
-  if (!rms.isReal() && !rms.isInt()) return fail(fmt::format("{}: key 'rms': expected a number", where));
+  if (!rms.isReal() && !rms.isInt())
+    return fail(fmt::format("{}: key 'rms': expected a number", where));
   rig.rms = static_cast<double>(rms);
 
   if (auto ok = validateRig(rig, where); !ok) return std::unexpected(ok.error());
@@ -218,11 +233,15 @@ Result<void> saveRig(const StereoRig& rig, const std::filesystem::path& path) {
     cv::FileStorage fs(where, cv::FileStorage::WRITE);
     if (!fs.isOpened()) return fail(fmt::format("{}: cannot open for writing", where));
     fs.writeComment("pulsetrack stereo rig: OpenCV stereo_calib keys; x_right = R x_left + T");
-    fs << "image_size" << "[" << rig.left.imageSize().width << rig.left.imageSize().height << "]";
+    fs << "image_size"
+       << "[" << rig.left.imageSize().width << rig.left.imageSize().height << "]";
     fs << "M1" << cv::Mat(rig.left.k());
-    fs << "D1" << cv::Mat(1, rig.left.numDistortion(), CV_64F, const_cast<double*>(rig.left.dist().data()));
+    fs << "D1"
+       << cv::Mat(1, rig.left.numDistortion(), CV_64F, const_cast<double*>(rig.left.dist().data()));
     fs << "M2" << cv::Mat(rig.right.k());
-    fs << "D2" << cv::Mat(1, rig.right.numDistortion(), CV_64F, const_cast<double*>(rig.right.dist().data()));
+    fs << "D2"
+       << cv::Mat(1, rig.right.numDistortion(), CV_64F,
+                  const_cast<double*>(rig.right.dist().data()));
     fs << "R" << cv::Mat(rig.r);
     fs << "T" << cv::Mat(rig.t);
     fs << "rms" << rig.rms;

@@ -55,7 +55,8 @@ class CalibrationTarget {
   // A flat image of the board for printing or rendering, `px_per_square` pixels per square and
   // `margin_px` of white around it. `texture_from_board` maps board coordinates (x, y, 1) to
   // pixel coordinates of the image (OpenCV's pixel-centre convention).
-  [[nodiscard]] cv::Mat draw(int px_per_square, int margin_px, cv::Matx33d& texture_from_board) const;
+  [[nodiscard]] cv::Mat draw(int px_per_square, int margin_px,
+                             cv::Matx33d& texture_from_board) const;
 
  private:
   PatternSpec spec_;
@@ -64,10 +65,10 @@ class CalibrationTarget {
 };
 
 struct CalibrationOptions {
-  int min_views = 5;        // stereo pairs needed after rejection
-  int min_corners = 8;      // corners a view needs in each camera to count
-  double reject_mad = 4.0;  // reject views above median + reject_mad * 1.4826 * MAD ...
-  double reject_ratio = 2.5;  // ... and above reject_ratio * median (both must hold)
+  int min_views = 5;            // stereo pairs needed after rejection
+  int min_corners = 8;          // corners a view needs in each camera to count
+  double reject_mad = 4.0;      // reject views above median + reject_mad * 1.4826 * MAD ...
+  double reject_ratio = 2.5;    // ... and above reject_ratio * median (both must hold)
   bool rational_model = false;  // k4 k5 k6 as well (8 coefficients)
 };
 
@@ -84,7 +85,7 @@ struct ViewReport {
   int left_corners = 0;
   int right_corners = 0;
   int common_corners = 0;
-  double left_rms = -1.0;   // px, in the final joint calibration; -1 when not evaluated
+  double left_rms = -1.0;  // px, in the final joint calibration; -1 when not evaluated
   double right_rms = -1.0;
   bool used = false;
   std::string rejected_because;  // empty when used
@@ -92,7 +93,7 @@ struct ViewReport {
 
 struct CalibrationResult {
   StereoRig rig;
-  double left_rms = 0.0;    // per-camera calibration RMS, px
+  double left_rms = 0.0;  // per-camera calibration RMS, px
   double right_rms = 0.0;
   double stereo_rms = 0.0;  // joint stereo RMS, px
   // Mean epipolar error as OpenCV's stereo_calib sample defines it (sum of the two point-to-
@@ -105,8 +106,7 @@ struct CalibrationResult {
 
 // Called once per image pair while detecting: index (0-based), total, the pair's names and
 // how many corners were found on each side.
-using DetectProgress =
-    std::function<void(size_t index, size_t total, const ViewInput& view)>;
+using DetectProgress = std::function<void(size_t index, size_t total, const ViewInput& view)>;
 
 // Reads each pair of image files (any format OpenCV decodes; colour is converted to grey) and
 // detects the target. Fails naming the file on an unreadable image or one whose size differs

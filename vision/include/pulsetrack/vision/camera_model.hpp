@@ -5,8 +5,8 @@
 // per feature and frame by the tracker.
 
 #include <array>
-#include <opencv2/core/types.hpp>
 #include <opencv2/core/matx.hpp>
+#include <opencv2/core/types.hpp>
 
 namespace pulsetrack::vision {
 
@@ -35,9 +35,10 @@ class CameraModel {
   [[nodiscard]] cv::Size imageSize() const noexcept { return image_size_; }
 
   // Normalized undistorted (x, y) -> normalized distorted (x'', y'').
-  [[nodiscard]] cv::Vec2d distortNormalized(cv::Vec2d xy) const noexcept;
+  [[nodiscard]] cv::Vec2d distortNormalized(const cv::Vec2d& xy) const noexcept;
   // The same with its 2x2 Jacobian d(distorted)/d(xy).
-  [[nodiscard]] cv::Vec2d distortNormalized(cv::Vec2d xy, cv::Matx22d& jacobian) const noexcept;
+  [[nodiscard]] cv::Vec2d distortNormalized(const cv::Vec2d& xy,
+                                            cv::Matx22d& jacobian) const noexcept;
 
   // A point in this camera's frame -> pixel. Undefined for points with z <= 0 (returns NaN).
   [[nodiscard]] cv::Vec2d project(const cv::Vec3d& point) const noexcept;
@@ -45,13 +46,13 @@ class CameraModel {
   // Pixel -> normalized undistorted coordinates, solved by Gauss-Newton to machine precision
   // (OpenCV's cv::undistortPoints stops after 5 fixed-point iterations by default, which leaves
   // errors of 1e-3 px and more near the corners of a strongly distorted lens).
-  [[nodiscard]] cv::Vec2d undistortToNormalized(cv::Vec2d pixel) const noexcept;
+  [[nodiscard]] cv::Vec2d undistortToNormalized(const cv::Vec2d& pixel) const noexcept;
   // Pixel -> undistorted pixel of the ideal pinhole camera K (cv::undistortPoints with P = K).
-  [[nodiscard]] cv::Vec2d undistortPixel(cv::Vec2d pixel) const noexcept;
+  [[nodiscard]] cv::Vec2d undistortPixel(const cv::Vec2d& pixel) const noexcept;
 
   // Eq. (2) of the paper in this camera's frame: the ray through the pixel, origin at the
   // camera centre, unit direction.
-  [[nodiscard]] Ray backProject(cv::Vec2d pixel) const noexcept;
+  [[nodiscard]] Ray backProject(const cv::Vec2d& pixel) const noexcept;
 
  private:
   cv::Matx33d k_ = cv::Matx33d::eye();

@@ -28,8 +28,10 @@ struct StereoRig {
   [[nodiscard]] cv::Vec3d rightCentre() const noexcept { return -(r.t() * t); }
 
   // Eq. (2) for each camera, both rays expressed in the left frame {C}.
-  [[nodiscard]] Ray backProjectLeft(cv::Vec2d pixel) const noexcept { return left.backProject(pixel); }
-  [[nodiscard]] Ray backProjectRight(cv::Vec2d pixel) const noexcept;
+  [[nodiscard]] Ray backProjectLeft(const cv::Vec2d& pixel) const noexcept {
+    return left.backProject(pixel);
+  }
+  [[nodiscard]] Ray backProjectRight(const cv::Vec2d& pixel) const noexcept;
 
   // A point in the left frame {C} -> pixel in each camera.
   [[nodiscard]] cv::Vec2d projectLeft(const cv::Vec3d& p) const noexcept { return left.project(p); }
@@ -44,7 +46,8 @@ struct StereoRig {
 
   // Distance in px of the right pixel from the epipolar line of the left pixel and the reverse,
   // both on undistorted pixel coordinates; returns {left->right line distance, right->left}.
-  [[nodiscard]] cv::Vec2d epipolarDistances(cv::Vec2d left_px, cv::Vec2d right_px) const noexcept;
+  [[nodiscard]] cv::Vec2d epipolarDistances(const cv::Vec2d& left_px,
+                                            const cv::Vec2d& right_px) const noexcept;
 };
 
 // Eq. (3): the point midway along the shortest segment between two rays, solved in closed form.
