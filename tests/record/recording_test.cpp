@@ -1,0 +1,248 @@
+// The recording format: exact round trip, a file cut anywhere reads back to its last complete
+// frame, corruption and version mismatches are named.
+
+#include "pulsetrack/record/recording.hpp"
+
+#include <gtest/gtest.h>
+
+#include <signal.h>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <fstream>
+#include <opencv2/calib3d.hpp>
+#include <random>
+
+#include "test_util.hpp"
+
+namespace pulsetrack::record {
+namespace {
+
+vision::StereoRig smallRig(cv::Size size) {
+  vision::StereoRig rig;
+  const double d[5] = {-0.1, 0.05, 0, 0, 0};
+  rig.left = vision::CameraModel({800, 0, size.width / 2.0, 0, 800, size.height / 2.0, 0, 0, 1}, d, 5, size);
+  rig.right = rig.left;
+  rig.t = {-60, 0, 0};
+  return rig;
+}
+
+Manifest manifest(cv::Size size) {
+  Manifest m;
+  m.source = "test";
+  m.rig_id = "bench-rig";
+  m.width = size.width;
+  m.height = size.height;
+  m.nominal_fps = 10;
+  return m;
+}
+
+cv::Mat noiseImage(cv::Size size, int seed) {
+  cv::Mat img(size, CV_8UC1);
+  cv::RNG rng(static_cast<uint64>(seed));
+  rng.fill(img, cv::RNG::NORMAL, 128, 20);
+  return img;
+}
+
+class Recording : public ::testing::TestWithParam<int> {
+ protected:
+  test::TempDir tmp;
+  const cv::Size size{160, 120};
+  std::vector<std::pair<cv::Mat, cv::Mat>> frames;
+  std::filesystem::path dir = tmp.path() / "rec";
+
+  void record(int n, int level) {
+    auto w = Writer::create(dir, manifest(size), smallRig(size), level);
+    ASSERT_TRUE(w) << w.error().message;
+    for (int i = 0; i < n; ++i) {
+      frames.emplace_back(noiseImage(size, 2 * i), noiseImage(size, 2 * i + 1));
+      // Frame 3 dropped: the index and timestamps jump.
+      const uint64_t f = static_cast<uint64_t>(i < 3 ? i : i + 1);
+      const FrameMeta meta{f, 1000 + f, static_cast<int64_t>(f) * 100'000'000,
+                           static_cast<int64_t>(f) * 100'000'000 + 20'000, 0};
+      ASSERT_TRUE(w->write(meta, frames.back().first, frames.back().second));
+    }
+    EXPECT_EQ(w->framesWritten(), static_cast<uint64_t>(n));
+    ASSERT_TRUE(w->close());
+  }
+};
+
+TEST_P(Recording, RoundTripIsBitExact) {
+  record(8, GetParam());
+  auto r = Reader::open(dir);
+  ASSERT_TRUE(r) << r.error().message;
+  EXPECT_FALSE(r->truncation());
+  ASSERT_EQ(r->size(), 8U);
+  EXPECT_EQ(r->manifest().rig_id, "bench-rig");
+  EXPECT_EQ(r->manifest().width, 160);
+  EXPECT_DOUBLE_EQ(r->rig().t[0], -60.0);
+  cv::Mat l, rr;
+  for (size_t i = 0; i < 8; ++i) {
+    ASSERT_TRUE(r->read(i, l, rr));
+    EXPECT_EQ(cv::norm(l, frames[i].first, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(rr, frames[i].second, cv::NORM_INF), 0.0);
+  }
+  EXPECT_EQ(r->meta(3).frame, 4U);  // the gap
+  EXPECT_EQ(r->meta(3).trigger_seq, 1004U);
+  EXPECT_EQ(r->meta(3).t_right_ns, 400'020'000);
+  // The per-frame table for people says the same.
+  std::ifstream csv(dir / "frames.csv");
+  std::string line;
+  std::getline(csv, line);
+  EXPECT_EQ(line, "frame,trigger_seq,t_left_ns,t_right_ns,flags");
+  for (int i = 0; i < 4; ++i) std::getline(csv, line);
+  EXPECT_EQ(line, "4,1004,400000000,400020000,0");
+}
+
+INSTANTIATE_TEST_SUITE_P(Codecs, Recording, ::testing::Values(0, 1, 3),
+                         [](const auto& param_info) { return "zstd_level_" + std::to_string(param_info.param); });
+
+TEST_F(Recording, CutAnywhereReadsToTheLastCompleteFrame) {
+  record(5, 1);
+  const auto ptv = dir / "frames.ptv";
+  const auto full = std::filesystem::file_size(ptv);
+  std::vector<char> bytes(full);
+  std::ifstream(ptv, std::ios::binary).read(bytes.data(), static_cast<std::streamsize>(full));
+  // Find the record boundaries from an intact read.
+  std::mt19937 rng(5);
+  for (int trial = 0; trial < 40; ++trial) {
+    const size_t cut = 32 + rng() % (full - 32);
+    std::ofstream(ptv, std::ios::binary | std::ios::trunc).write(bytes.data(), static_cast<std::streamsize>(cut));
+    auto r = Reader::open(dir);
+    ASSERT_TRUE(r) << r.error().message;
+    ASSERT_LT(r->size(), 5U) << "cut at " << cut;
+    ASSERT_TRUE(r->truncation()) << "cut at " << cut;
+    cv::Mat l, rr;
+    for (size_t i = 0; i < r->size(); ++i) {
+      ASSERT_TRUE(r->read(i, l, rr));
+      EXPECT_EQ(cv::norm(l, frames[i].first, cv::NORM_INF), 0.0);
+    }
+  }
+}
+
+TEST_F(Recording, PowerCutThatLeftZerosIsDropped) {
+  record(4, 1);
+  const auto ptv = dir / "frames.ptv";
+  // Overwrite the last 100 bytes with zeros: the length is on disk, the data is not.
+  std::fstream f(ptv, std::ios::binary | std::ios::in | std::ios::out);
+  f.seekp(-100, std::ios::end);
+  const std::string zeros(100, '\0');
+  f.write(zeros.data(), 100);
+  f.close();
+  auto r = Reader::open(dir);
+  ASSERT_TRUE(r) << r.error().message;
+  EXPECT_EQ(r->size(), 3U);
+  ASSERT_TRUE(r->truncation());
+  EXPECT_NE(r->truncation()->find("failed its CRC"), std::string::npos) << *r->truncation();
+}
+
+TEST_F(Recording, CorruptFrameInTheMiddleIsNamed) {
+  record(4, 1);
+  const auto ptv = dir / "frames.ptv";
+  auto r0 = Reader::open(dir);
+  ASSERT_TRUE(r0);
+  std::fstream f(ptv, std::ios::binary | std::ios::in | std::ios::out);
+  f.seekp(32 + 64 + 10);  // inside frame 0's payload
+  f.put('\x5a');
+  f.close();
+  auto r = Reader::open(dir);
+  ASSERT_TRUE(r);
+  cv::Mat l, rr;
+  auto bad = r->read(0, l, rr);
+  ASSERT_FALSE(bad);
+  EXPECT_NE(bad.error().message.find("frames.ptv: frame 0: payload CRC mismatch"), std::string::npos)
+      << bad.error().message;
+  EXPECT_TRUE(r->read(1, l, rr));
+}
+
+TEST_F(Recording, BadFoldersAndVersionsAreNamed) {
+  auto none = Reader::open(tmp.path() / "missing");
+  ASSERT_FALSE(none);
+  EXPECT_NE(none.error().message.find("not a recording folder"), std::string::npos);
+  record(2, 1);
+  std::string text;
+  {
+    std::ifstream in(dir / "manifest.toml");
+    text.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  const auto write_manifest = [&](const std::string& t) { std::ofstream(dir / "manifest.toml") << t; };
+  std::string v2 = text;
+  v2.replace(v2.find("version = 1"), 11, "version = 2");
+  write_manifest(v2);
+  auto r = Reader::open(dir);
+  ASSERT_FALSE(r);
+  EXPECT_NE(r.error().message.find("manifest.toml:3: recording format version 2 is not one"), std::string::npos)
+      << r.error().message;
+  write_manifest("format = \"pulsetrack-recording\"\nversion = 1\nwidth = [\n");
+  r = Reader::open(dir);
+  ASSERT_FALSE(r);
+  EXPECT_NE(r.error().message.find("manifest.toml:"), std::string::npos) << r.error().message;
+  std::string wrong = text;
+  wrong.replace(wrong.find("width = 160"), 11, "width = 161");
+  write_manifest(wrong);
+  r = Reader::open(dir);
+  ASSERT_FALSE(r);
+  EXPECT_NE(r.error().message.find("frames are 160x120 but manifest.toml says 161x120"), std::string::npos)
+      << r.error().message;
+  write_manifest(text);
+  std::ofstream(dir / "frames.ptv", std::ios::trunc) << "JUNKJUNKJUNKJUNKJUNKJUNKJUNKJUNKJUNK";
+  r = Reader::open(dir);
+  ASSERT_FALSE(r);
+  EXPECT_NE(r.error().message.find("not a pulsetrack frames file"), std::string::npos);
+}
+
+TEST_F(Recording, WriterRefusesToOverwriteAndBadFrames) {
+  record(1, 1);
+  auto again = Writer::create(dir, manifest(size), smallRig(size));
+  ASSERT_FALSE(again);
+  EXPECT_NE(again.error().message.find("never overwritten"), std::string::npos);
+  auto w = Writer::create(tmp.path() / "other", manifest(size), smallRig(size));
+  ASSERT_TRUE(w);
+  auto bad = w->write({}, cv::Mat(10, 10, CV_8UC1), cv::Mat(10, 10, CV_8UC1));
+  ASSERT_FALSE(bad);
+  EXPECT_NE(bad.error().message.find("must be 160x120 gray8"), std::string::npos);
+}
+
+TEST(RecordingDiskFull, WriteFailsCleanlyAndTheRecordingStaysReadable) {
+  // A child process whose file-size limit the kernel enforces (RLIMIT_FSIZE: write(2) fails
+  // with EFBIG part-way through a record, as it would with ENOSPC on a full disk).
+  test::TempDir tmp;
+  const cv::Size size(64, 48);
+  const auto dir = tmp.path() / "rec";
+  const pid_t pid = ::fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    ::signal(SIGXFSZ, SIG_IGN);
+    auto w = Writer::create(dir, manifest(size), smallRig(size), 0);  // raw: 6 KB per frame
+    if (!w) ::_exit(10);
+    rlimit lim{};
+    lim.rlim_cur = lim.rlim_max = 50'000;
+    if (::setrlimit(RLIMIT_FSIZE, &lim) != 0) ::_exit(11);
+    for (uint64_t i = 0; i < 100; ++i) {
+      auto ok = w->write({i, i, 0, 0, 0}, noiseImage(size, 1), noiseImage(size, 2));
+      if (!ok) {
+        const bool named = ok.error().message.find("frames.ptv: frame " + std::to_string(i) +
+                                                   " not recorded") != std::string::npos;
+        ::_exit(named && w->framesWritten() == i ? static_cast<int>(i) + 100 : 12);
+      }
+    }
+    ::_exit(13);
+  }
+  int status = 0;
+  ASSERT_EQ(::waitpid(pid, &status, 0), pid);
+  ASSERT_TRUE(WIFEXITED(status));
+  const int code = WEXITSTATUS(status);
+  ASSERT_GE(code, 100) << "child exit " << code;
+  const size_t written = static_cast<size_t>(code - 100);
+  EXPECT_GT(written, 3U);
+  auto r = Reader::open(dir);
+  ASSERT_TRUE(r) << r.error().message;
+  EXPECT_EQ(r->size(), written);
+  EXPECT_FALSE(r->truncation()) << *r->truncation();  // truncated back to a clean end
+  cv::Mat l, rr;
+  EXPECT_TRUE(r->read(written - 1, l, rr));
+}
+
+}  // namespace
+}  // namespace pulsetrack::record
