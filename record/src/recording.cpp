@@ -3,6 +3,7 @@
 #include <fcntl.h>
 #include <fmt/format.h>
 #include <sys/stat.h>
+#include <toml++/toml.h>
 #include <unistd.h>
 #include <zlib.h>
 #include <zstd.h>
@@ -11,7 +12,6 @@
 #include <cerrno>
 #include <cstring>
 #include <ctime>
-#include <toml++/toml.h>
 
 namespace pulsetrack::record {
 
@@ -57,8 +57,8 @@ static_assert(sizeof(RecordHeader) == 64);
 
 template <class T>
 uint32_t crcOfPrefix(const T& h) {
-  return static_cast<uint32_t>(
-      crc32(0L, reinterpret_cast<const Bytef*>(&h), static_cast<uInt>(sizeof(T) - sizeof(uint32_t))));
+  return static_cast<uint32_t>(crc32(0L, reinterpret_cast<const Bytef*>(&h),
+                                     static_cast<uInt>(sizeof(T) - sizeof(uint32_t))));
 }
 
 uint32_t crcUpdate(uint32_t crc, const void* data, size_t n) {
@@ -143,7 +143,8 @@ Result<Writer> Writer::create(const std::filesystem::path& dir, const Manifest& 
                             m.width, m.height));
   }
   if (m.pixel_format != "gray8") {
-    return fail(fmt::format("{}: pixel format '{}' is not supported (gray8)", dir.string(), m.pixel_format));
+    return fail(fmt::format("{}: pixel format '{}' is not supported (gray8)", dir.string(),
+                            m.pixel_format));
   }
   std::error_code ec;
   if (std::filesystem::exists(dir, ec) && !std::filesystem::is_empty(dir, ec)) {
@@ -196,7 +197,8 @@ Result<Writer> Writer::create(const std::filesystem::path& dir, const Manifest& 
 
   const auto csv = dir / "frames.csv";
   impl->csv_fd = ::open(csv.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (impl->csv_fd < 0) return fail(fmt::format("{}: cannot create: {}", csv.string(), errnoText(errno)));
+  if (impl->csv_fd < 0)
+    return fail(fmt::format("{}: cannot create: {}", csv.string(), errnoText(errno)));
   const std::string head = "frame,trigger_seq,t_left_ns,t_right_ns,flags\n";
   if (int err = writeAll(impl->csv_fd, head.data(), head.size()); err != 0) {
     return fail(fmt::format("{}: write failed: {}", csv.string(), errnoText(err)));
@@ -233,8 +235,9 @@ Result<void> Writer::write(const FrameMeta& meta, const cv::Mat& left, const cv:
   for (int k = 0; k < 2; ++k) {
     const cv::Mat src = images[k]->isContinuous() ? *images[k] : images[k]->clone();
     if (w.level > 0) {
-      const size_t n = ZSTD_compressCCtx(w.cctx, payload + used, w.buffer.size() - sizeof(RecordHeader) - used,
-                                         src.data, image, w.level);
+      const size_t n =
+          ZSTD_compressCCtx(w.cctx, payload + used, w.buffer.size() - sizeof(RecordHeader) - used,
+                            src.data, image, w.level);
       if (ZSTD_isError(n) != 0U) {
         return fail(fmt::format("{}: zstd: {}", w.frames_path.string(), ZSTD_getErrorName(n)));
       }
@@ -270,11 +273,10 @@ Result<void> Writer::write(const FrameMeta& meta, const cv::Mat& left, const cv:
   ++w.frames;
   w.bytes += total;
   char line[128];
-  const int n = std::snprintf(line, sizeof line, "%llu,%llu,%lld,%lld,%u\n",
-                              static_cast<unsigned long long>(meta.frame),
-                              static_cast<unsigned long long>(meta.trigger_seq),
-                              static_cast<long long>(meta.t_left_ns),
-                              static_cast<long long>(meta.t_right_ns), meta.flags);
+  const int n = std::snprintf(
+      line, sizeof line, "%llu,%llu,%lld,%lld,%u\n", static_cast<unsigned long long>(meta.frame),
+      static_cast<unsigned long long>(meta.trigger_seq), static_cast<long long>(meta.t_left_ns),
+      static_cast<long long>(meta.t_right_ns), meta.flags);
   if (int err = writeAll(w.csv_fd, line, static_cast<size_t>(n)); err != 0) {
     return fail(fmt::format("{}: frames.csv: {}", w.dir.string(), errnoText(err)));
   }
@@ -333,7 +335,8 @@ struct Reader::Impl {
     payload.resize(n);
     size_t done = 0;
     while (done < n) {
-      const ssize_t r = ::pread(fd, payload.data() + done, n - done, e.offset + static_cast<off_t>(done));
+      const ssize_t r =
+          ::pread(fd, payload.data() + done, n - done, e.offset + static_cast<off_t>(done));
       if (r < 0 && errno == EINTR) continue;
       if (r <= 0) {
         return fail(fmt::format("{}: frame {}: read failed: {}", frames_path.string(), e.meta.frame,
@@ -343,7 +346,8 @@ struct Reader::Impl {
     }
     if (crcUpdate(0, payload.data(), n) != e.payload_crc) {
       return fail(fmt::format("{}: frame {}: payload CRC mismatch (corrupt data at byte {})",
-                              frames_path.string(), e.meta.frame, static_cast<long long>(e.offset)));
+                              frames_path.string(), e.meta.frame,
+                              static_cast<long long>(e.offset)));
     }
     return {};
   }
@@ -373,16 +377,19 @@ Result<Manifest> readManifest(const std::filesystem::path& path) {
   auto fmt_node = need("format");
   if (!fmt_node) return std::unexpected(fmt_node.error());
   if ((*fmt_node)->value<std::string>() != "pulsetrack-recording") {
-    return fail(fmt::format("{}:{}: format must be \"pulsetrack-recording\"", path.string(), line(*fmt_node)));
+    return fail(fmt::format("{}:{}: format must be \"pulsetrack-recording\"", path.string(),
+                            line(*fmt_node)));
   }
   auto version = need("version");
   if (!version) return std::unexpected(version.error());
   const auto v = (*version)->value<int64_t>();
-  if (!v) return fail(fmt::format("{}:{}: version must be an integer", path.string(), line(*version)));
+  if (!v)
+    return fail(fmt::format("{}:{}: version must be an integer", path.string(), line(*version)));
   if (*v > kFormatVersion || *v < 1) {
-    return fail(fmt::format("{}:{}: recording format version {} is not one this pulsetrack reads "
-                            "(1 to {})",
-                            path.string(), line(*version), *v, kFormatVersion));
+    return fail(
+        fmt::format("{}:{}: recording format version {} is not one this pulsetrack reads "
+                    "(1 to {})",
+                    path.string(), line(*version), *v, kFormatVersion));
   }
   m.version = static_cast<int>(*v);
   for (const char* key : {"width", "height"}) {
@@ -390,7 +397,8 @@ Result<Manifest> readManifest(const std::filesystem::path& path) {
     if (!n) return std::unexpected(n.error());
     const auto x = (*n)->value<int64_t>();
     if (!x || *x <= 0 || *x > 65535) {
-      return fail(fmt::format("{}:{}: {} must be an integer in 1..65535", path.string(), line(*n), key));
+      return fail(
+          fmt::format("{}:{}: {} must be an integer in 1..65535", path.string(), line(*n), key));
     }
     (std::string(key) == "width" ? m.width : m.height) = static_cast<int>(*x);
   }
@@ -400,7 +408,8 @@ Result<Manifest> readManifest(const std::filesystem::path& path) {
   m.nominal_fps = t["nominal_fps"].value_or(0.0);
   m.created = t["created"].value_or(std::string());
   if (m.pixel_format != "gray8") {
-    return fail(fmt::format("{}: pixel_format '{}' is not supported (gray8)", path.string(), m.pixel_format));
+    return fail(fmt::format("{}: pixel_format '{}' is not supported (gray8)", path.string(),
+                            m.pixel_format));
   }
   return m;
 }
@@ -412,7 +421,8 @@ Result<Reader> Reader::open(const std::filesystem::path& dir) {
   impl->dir = dir;
   std::error_code ec;
   if (!std::filesystem::is_directory(dir, ec)) {
-    return fail(fmt::format("{}: not a recording folder (does not exist or is not a folder)", dir.string()));
+    return fail(fmt::format("{}: not a recording folder (does not exist or is not a folder)",
+                            dir.string()));
   }
   auto manifest = readManifest(dir / "manifest.toml");
   if (!manifest) return std::unexpected(manifest.error());
@@ -435,9 +445,11 @@ Result<Reader> Reader::open(const std::filesystem::path& dir) {
   if (std::memcmp(fh.magic, kFileMagic, sizeof fh.magic) != 0) {
     return fail(fmt::format("{}: not a pulsetrack frames file (bad magic)", fp));
   }
-  if (fh.header_crc != crcOfPrefix(fh)) return fail(fmt::format("{}: file header CRC mismatch", fp));
+  if (fh.header_crc != crcOfPrefix(fh))
+    return fail(fmt::format("{}: file header CRC mismatch", fp));
   if (fh.version < 1 || fh.version > static_cast<uint32_t>(kFormatVersion)) {
-    return fail(fmt::format("{}: frames file version {} is not one this pulsetrack reads", fp, fh.version));
+    return fail(
+        fmt::format("{}: frames file version {} is not one this pulsetrack reads", fp, fh.version));
   }
   if (static_cast<int>(fh.width) != impl->manifest.width ||
       static_cast<int>(fh.height) != impl->manifest.height) {
@@ -450,15 +462,17 @@ Result<Reader> Reader::open(const std::filesystem::path& dir) {
                             dir.string(), rig_size.width, rig_size.height, impl->manifest.width,
                             impl->manifest.height));
   }
-  const uint64_t max_payload = 2ULL * (ZSTD_compressBound(static_cast<size_t>(fh.width) * fh.height));
+  const uint64_t max_payload =
+      2ULL * (ZSTD_compressBound(static_cast<size_t>(fh.width) * fh.height));
 
   off_t offset = fh.header_size;
   while (offset < file_size) {
     RecordHeader h{};
     const ssize_t got = ::pread(impl->fd, &h, sizeof h, offset);
     if (got != static_cast<ssize_t>(sizeof h)) {
-      impl->truncation = fmt::format("incomplete record header at byte {} (file cut after {} frames)",
-                                     static_cast<long long>(offset), impl->index.size());
+      impl->truncation =
+          fmt::format("incomplete record header at byte {} (file cut after {} frames)",
+                      static_cast<long long>(offset), impl->index.size());
       break;
     }
     if (h.magic != kRecordMagic || h.header_crc != crcOfPrefix(h) || h.header_size != sizeof h ||
@@ -522,15 +536,15 @@ Result<void> Reader::read(size_t index, cv::Mat& left, cv::Mat& right) {
     if (e.codec == kCodecZstd) {
       const size_t got = ZSTD_decompressDCtx(r.dctx, dst[k]->data, image, src, n[k]);
       if (ZSTD_isError(got) != 0U || got != image) {
-        return fail(fmt::format("{}: frame {}: {} image does not decode ({})", r.frames_path.string(),
-                                e.meta.frame, k == 0 ? "left" : "right",
+        return fail(fmt::format("{}: frame {}: {} image does not decode ({})",
+                                r.frames_path.string(), e.meta.frame, k == 0 ? "left" : "right",
                                 ZSTD_isError(got) != 0U ? ZSTD_getErrorName(got) : "wrong size"));
       }
     } else if (e.codec == kCodecRaw && n[k] == image) {
       std::memcpy(dst[k]->data, src, image);
     } else {
-      return fail(fmt::format("{}: frame {}: unknown codec {} or wrong size", r.frames_path.string(),
-                              e.meta.frame, e.codec));
+      return fail(fmt::format("{}: frame {}: unknown codec {} or wrong size",
+                              r.frames_path.string(), e.meta.frame, e.codec));
     }
     src += n[k];
   }

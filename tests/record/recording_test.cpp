@@ -4,7 +4,6 @@
 #include "pulsetrack/record/recording.hpp"
 
 #include <gtest/gtest.h>
-
 #include <signal.h>
 #include <sys/resource.h>
 #include <sys/wait.h>
@@ -22,7 +21,8 @@ namespace {
 vision::StereoRig smallRig(cv::Size size) {
   vision::StereoRig rig;
   const double d[5] = {-0.1, 0.05, 0, 0, 0};
-  rig.left = vision::CameraModel({800, 0, size.width / 2.0, 0, 800, size.height / 2.0, 0, 0, 1}, d, 5, size);
+  rig.left = vision::CameraModel({800, 0, size.width / 2.0, 0, 800, size.height / 2.0, 0, 0, 1}, d,
+                                 5, size);
   rig.right = rig.left;
   rig.t = {-60, 0, 0};
   return rig;
@@ -95,8 +95,9 @@ TEST_P(Recording, RoundTripIsBitExact) {
   EXPECT_EQ(line, "4,1004,400000000,400020000,0");
 }
 
-INSTANTIATE_TEST_SUITE_P(Codecs, Recording, ::testing::Values(0, 1, 3),
-                         [](const auto& param_info) { return "zstd_level_" + std::to_string(param_info.param); });
+INSTANTIATE_TEST_SUITE_P(Codecs, Recording, ::testing::Values(0, 1, 3), [](const auto& param_info) {
+  return "zstd_level_" + std::to_string(param_info.param);
+});
 
 TEST_F(Recording, CutAnywhereReadsToTheLastCompleteFrame) {
   record(5, 1);
@@ -108,7 +109,8 @@ TEST_F(Recording, CutAnywhereReadsToTheLastCompleteFrame) {
   std::mt19937 rng(5);
   for (int trial = 0; trial < 40; ++trial) {
     const size_t cut = 32 + rng() % (full - 32);
-    std::ofstream(ptv, std::ios::binary | std::ios::trunc).write(bytes.data(), static_cast<std::streamsize>(cut));
+    std::ofstream(ptv, std::ios::binary | std::ios::trunc)
+        .write(bytes.data(), static_cast<std::streamsize>(cut));
     auto r = Reader::open(dir);
     ASSERT_TRUE(r) << r.error().message;
     ASSERT_LT(r->size(), 5U) << "cut at " << cut;
@@ -151,7 +153,8 @@ TEST_F(Recording, CorruptFrameInTheMiddleIsNamed) {
   cv::Mat l, rr;
   auto bad = r->read(0, l, rr);
   ASSERT_FALSE(bad);
-  EXPECT_NE(bad.error().message.find("frames.ptv: frame 0: payload CRC mismatch"), std::string::npos)
+  EXPECT_NE(bad.error().message.find("frames.ptv: frame 0: payload CRC mismatch"),
+            std::string::npos)
       << bad.error().message;
   EXPECT_TRUE(r->read(1, l, rr));
 }
@@ -166,13 +169,16 @@ TEST_F(Recording, BadFoldersAndVersionsAreNamed) {
     std::ifstream in(dir / "manifest.toml");
     text.assign(std::istreambuf_iterator<char>(in), {});
   }
-  const auto write_manifest = [&](const std::string& t) { std::ofstream(dir / "manifest.toml") << t; };
+  const auto write_manifest = [&](const std::string& t) {
+    std::ofstream(dir / "manifest.toml") << t;
+  };
   std::string v2 = text;
   v2.replace(v2.find("version = 1"), 11, "version = 2");
   write_manifest(v2);
   auto r = Reader::open(dir);
   ASSERT_FALSE(r);
-  EXPECT_NE(r.error().message.find("manifest.toml:3: recording format version 2 is not one"), std::string::npos)
+  EXPECT_NE(r.error().message.find("manifest.toml:3: recording format version 2 is not one"),
+            std::string::npos)
       << r.error().message;
   write_manifest("format = \"pulsetrack-recording\"\nversion = 1\nwidth = [\n");
   r = Reader::open(dir);
@@ -183,7 +189,8 @@ TEST_F(Recording, BadFoldersAndVersionsAreNamed) {
   write_manifest(wrong);
   r = Reader::open(dir);
   ASSERT_FALSE(r);
-  EXPECT_NE(r.error().message.find("frames are 160x120 but manifest.toml says 161x120"), std::string::npos)
+  EXPECT_NE(r.error().message.find("frames are 160x120 but manifest.toml says 161x120"),
+            std::string::npos)
       << r.error().message;
   write_manifest(text);
   std::ofstream(dir / "frames.ptv", std::ios::trunc) << "JUNKJUNKJUNKJUNKJUNKJUNKJUNKJUNKJUNK";

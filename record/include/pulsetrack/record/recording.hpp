@@ -30,18 +30,18 @@ struct FrameMeta {
   uint64_t trigger_seq = 0;  // the trigger source's own sequence number
   int64_t t_left_ns = 0;     // exposure timestamps, CLOCK_MONOTONIC-like ns (sim: scene time)
   int64_t t_right_ns = 0;
-  uint32_t flags = 0;        // reserved, 0
+  uint32_t flags = 0;  // reserved, 0
 };
 
 struct Manifest {
   int version = kFormatVersion;
-  std::string source;       // "sim:<scene name>", "v4l2:<devices>", "replay:<folder>", ...
-  std::string rig_id;       // the rig's name, also the DDS key
+  std::string source;  // "sim:<scene name>", "v4l2:<devices>", "replay:<folder>", ...
+  std::string rig_id;  // the rig's name, also the DDS key
   int width = 0;
   int height = 0;
   std::string pixel_format = "gray8";
   double nominal_fps = 0.0;
-  std::string created;      // ISO 8601 UTC
+  std::string created;  // ISO 8601 UTC
 };
 
 class Writer {

@@ -1,0 +1,39 @@
+#pragma once
+// What a real camera does to the scene's radiance: defocus blur, vignetting, gain changes,
+// sensor noise (Gaussian, sigma in grey levels), 8-bit quantization with saturation, and
+// dropped frames (decided per frame from the seed, so a scene is reproducible).
+
+#include <opencv2/core.hpp>
+#include <random>
+
+namespace pulsetrack::sim {
+
+struct CameraEffectsSpec {
+  double blur_sigma_px = 0.7;       // defocus, Gaussian
+  double noise_sigma = 2.0;         // grey levels
+  double vignetting = 0.25;         // relative fall-off at the image corner
+  double gain_amplitude = 0.0;      // relative, sinusoidal
+  double gain_period_s = 30.0;
+  double drop_probability = 0.0;    // per frame
+};
+
+class CameraEffects {
+ public:
+  CameraEffects(const CameraEffectsSpec& spec, cv::Size image_size, unsigned seed);
+  // radiance (CV_32FC1) -> 8-bit image. `camera` 0/1 picks the noise stream.
+  void apply(const cv::Mat& radiance, double t, cv::Mat& out);
+  // Whether frame `index` is dropped (deterministic per index).
+  [[nodiscard]] bool dropped(uint64_t index) const;
+  [[nodiscard]] double gain(double t) const;
+  [[nodiscard]] const CameraEffectsSpec& spec() const { return spec_; }
+
+ private:
+  CameraEffectsSpec spec_;
+  unsigned seed_;
+  cv::Mat vignette_;  // CV_32FC1 multiplier
+  cv::Mat work_;
+  cv::Mat noise_;
+  cv::RNG rng_;
+};
+
+}  // namespace pulsetrack::sim
