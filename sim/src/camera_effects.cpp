@@ -34,7 +34,8 @@ bool CameraEffects::dropped(uint64_t index) const {
 
 void CameraEffects::apply(const cv::Mat& radiance, double t, cv::Mat& out) {
   cv::multiply(radiance, vignette_, work_, gain(t));
-  if (spec_.blur_sigma_px > 0.0) cv::GaussianBlur(work_, work_, cv::Size(0, 0), spec_.blur_sigma_px);
+  if (spec_.blur_sigma_px > 0.0)
+    cv::GaussianBlur(work_, work_, cv::Size(0, 0), spec_.blur_sigma_px);
   if (spec_.noise_sigma > 0.0) {
     rng_.fill(noise_, cv::RNG::NORMAL, 0.0, spec_.noise_sigma);
     work_ += noise_;

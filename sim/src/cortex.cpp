@@ -7,6 +7,8 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "texture_paint.hpp"
+
 namespace pulsetrack::sim {
 
 namespace {
@@ -38,7 +40,8 @@ cv::Mat gaussianNoise(cv::Size size, double sigma_px, cv::RNG& rng) {
 }
 
 // Sum of noise octaves: (correlation length in px, weight).
-cv::Mat noiseField(cv::Size size, cv::RNG& rng, const std::vector<std::pair<double, double>>& octaves) {
+cv::Mat noiseField(cv::Size size, cv::RNG& rng,
+                   const std::vector<std::pair<double, double>>& octaves) {
   cv::Mat acc(size, CV_32FC1, cv::Scalar(0));
   for (const auto& [sigma, weight] : octaves) acc += gaussianNoise(size, sigma, rng) * weight;
   return acc;
@@ -71,7 +74,8 @@ void growVessel(cv::Point2d p, double heading, double width, int depth, double l
       if (depth < 7) {
         const double side = unit(rng) < 0.5 ? -1.0 : 1.0;
         const double angle = (0.45 + 0.6 * unit(rng)) * side;
-        growVessel(p, heading + angle, width * (0.55 + 0.2 * unit(rng)), depth + 1, limit_r, rng, out);
+        growVessel(p, heading + angle, width * (0.55 + 0.2 * unit(rng)), depth + 1, limit_r, rng,
+                   out);
       }
       width *= 0.86;
       heading -= 0.15 * (unit(rng) - 0.5);
@@ -81,7 +85,8 @@ void growVessel(cv::Point2d p, double heading, double width, int depth, double l
 }
 
 // Squared distance between segments p0-p1 and q0-q1.
-double segmentDistance2(const cv::Vec3d& p0, const cv::Vec3d& p1, const cv::Vec3d& q0, const cv::Vec3d& q1) {
+double segmentDistance2(const cv::Vec3d& p0, const cv::Vec3d& p1, const cv::Vec3d& q0,
+                        const cv::Vec3d& q1) {
   const cv::Vec3d d1 = p1 - p0, d2 = q1 - q0, r = p0 - q0;
   const double a = d1.dot(d1), e = d2.dot(d2), f = d2.dot(r);
   double s = 0.0, t = 0.0;
@@ -234,9 +239,9 @@ void CortexScene::buildTexture() {
   const int n = static_cast<int>(std::ceil(2.0 * extent * k));
   const cv::Size size(n, n);
   // Tissue: blotches (mm to cm) and fine capillary texture (0.1-0.4 mm).
-  cv::Mat noise = noiseField(size, cvrng,
-                             {{8.0 * k, 0.07}, {2.5 * k, 0.06}, {0.8 * k, 0.05}, {0.25 * k, 0.05},
-                              {0.1 * k, 0.04}});
+  cv::Mat noise = noiseField(
+      size, cvrng,
+      {{8.0 * k, 0.07}, {2.5 * k, 0.06}, {0.8 * k, 0.05}, {0.25 * k, 0.05}, {0.1 * k, 0.04}});
   // Vessels: trees entering from the rim, plus a few sulci (wide, faint).
   std::vector<Segment> segments;
   std::uniform_real_distribution<double> unit(0.0, 1.0);
@@ -257,7 +262,8 @@ void CortexScene::buildTexture() {
   for (const Segment& s : segments) {
     const int thickness = std::max(1, static_cast<int>(std::lround(s.width_mm * k)));
     const double strength = std::min(1.0, 0.35 + s.width_mm / 1.2);
-    cv::line(vessels, to_px(s.a), to_px(s.b), cv::Scalar(255 * strength), thickness, cv::LINE_AA, 4);
+    cv::line(vessels, to_px(s.a), to_px(s.b), cv::Scalar(255 * strength), thickness, cv::LINE_AA,
+             4);
   }
   cv::Mat vessel_f;
   vessels.convertTo(vessel_f, CV_32FC1, 1.0 / 255.0);
@@ -265,24 +271,36 @@ void CortexScene::buildTexture() {
   std::vector<Segment> sulci;
   for (int i = 0; i < 3; ++i) {
     const double a = kTwoPi * unit(rng);
-    growVessel(extent * cv::Point2d(std::cos(a), std::sin(a)), a + CV_PI, 2.5, 6, extent + 1.0, rng, sulci);
+    growVessel(extent * cv::Point2d(std::cos(a), std::sin(a)), a + CV_PI, 2.5, 6, extent + 1.0, rng,
+               sulci);
   }
   cv::Mat sulcus(size, CV_8UC1, cv::Scalar(0));
   for (const Segment& s : sulci) {
-    cv::line(sulcus, to_px(s.a), to_px(s.b), cv::Scalar(255), std::max(1, static_cast<int>(s.width_mm * k)),
-             cv::LINE_AA, 4);
+    cv::line(sulcus, to_px(s.a), to_px(s.b), cv::Scalar(255),
+             std::max(1, static_cast<int>(s.width_mm * k)), cv::LINE_AA, 4);
   }
   cv::Mat sulcus_f;
   sulcus.convertTo(sulcus_f, CV_32FC1, 1.0 / 255.0);
   cv::GaussianBlur(sulcus_f, sulcus_f, cv::Size(0, 0), 1.0 * k);
   texture_ = static_cast<float>(spec_.tissue_albedo) *
-             (1.0F + noise).mul(1.0F - static_cast<float>(spec_.vessel_contrast) * vessel_f)
+             (1.0F + noise)
+                 .mul(1.0F - static_cast<float>(spec_.vessel_contrast) * vessel_f)
                  .mul(1.0F - 0.3F * sulcus_f);
+  if (spec_.texture == "dots") {
+    texture_.setTo(static_cast<float>(spec_.tissue_albedo));
+    for (double v = -std::floor(extent / 4) * 4; v <= extent; v += 4.0) {
+      for (double u = -std::floor(extent / 4) * 4; u <= extent; u += 4.0) {
+        paintDisc(texture_, {(u + extent) * k - 0.5, (v + extent) * k - 0.5}, 0.4 * k,
+                  [](double) { return 0.2; });
+      }
+    }
+  }
 
   // Bone and drapes around the craniotomy: bright, low contrast.
   const double bone_k = 4.0;
   const int bn = static_cast<int>(2.0 * (spec_.radius_mm + 30.0) * bone_k);
-  bone_texture_ = 185.0F * (1.0F + noiseField({bn, bn}, cvrng, {{6.0 * bone_k, 0.05}, {1.0 * bone_k, 0.04}}));
+  bone_texture_ =
+      185.0F * (1.0F + noiseField({bn, bn}, cvrng, {{6.0 * bone_k, 0.05}, {1.0 * bone_k, 0.04}}));
   // Wet-tissue wrinkles (0.5-2 mm) as a height field in material coordinates: their slopes
   // tilt the normals and break the highlights into glints that move with the tissue.
   const double bump_k = 8.0;
@@ -301,15 +319,18 @@ void CortexScene::buildMeshes() {
   const int n = grid_n_;
   grid_uv_.resize(static_cast<size_t>(n * n));
   for (int j = 0; j < n; ++j) {
-    for (int i = 0; i < n; ++i) grid_uv_[static_cast<size_t>(j * n + i)] = {-half + i * h, -half + j * h};
+    for (int i = 0; i < n; ++i)
+      grid_uv_[static_cast<size_t>(j * n + i)] = {-half + i * h, -half + j * h};
   }
   const double keep = (half + h) * (half + h);
   for (int j = 0; j + 1 < n; ++j) {
     for (int i = 0; i + 1 < n; ++i) {
       const int a = j * n + i, b = a + 1, c = a + n, d = c + 1;
       const cv::Vec2d& p = grid_uv_[static_cast<size_t>(a)];
-      if (p[0] * p[0] + p[1] * p[1] > keep && (p[0] + h) * (p[0] + h) + (p[1] + h) * (p[1] + h) > keep &&
-          p[0] * p[0] + (p[1] + h) * (p[1] + h) > keep && (p[0] + h) * (p[0] + h) + p[1] * p[1] > keep) {
+      if (p[0] * p[0] + p[1] * p[1] > keep &&
+          (p[0] + h) * (p[0] + h) + (p[1] + h) * (p[1] + h) > keep &&
+          p[0] * p[0] + (p[1] + h) * (p[1] + h) > keep &&
+          (p[0] + h) * (p[0] + h) + p[1] * p[1] > keep) {
         continue;
       }
       cortex_tris_.emplace_back(a, b, d);
@@ -321,9 +342,12 @@ void CortexScene::buildMeshes() {
   bump_grad_.resize(grid_uv_.size());
   const double bump_extent = spec_.radius_mm + 3.0;
   for (size_t i = 0; i < grid_uv_.size(); ++i) {
-    const int bx = std::clamp(static_cast<int>((grid_uv_[i][0] + bump_extent) * bump_px_per_mm_), 0, bump_du_.cols - 1);
-    const int by = std::clamp(static_cast<int>((grid_uv_[i][1] + bump_extent) * bump_px_per_mm_), 0, bump_du_.rows - 1);
-    bump_grad_[i] = {bump_du_.at<float>(by, bx), bump_dv_.at<float>(by, bx)};
+    const int bx = std::clamp(static_cast<int>((grid_uv_[i][0] + bump_extent) * bump_px_per_mm_), 0,
+                              bump_du_.cols - 1);
+    const int by = std::clamp(static_cast<int>((grid_uv_[i][1] + bump_extent) * bump_px_per_mm_), 0,
+                              bump_du_.rows - 1);
+    bump_grad_[i] = static_cast<float>(spec_.wrinkle_slope) *
+                    cv::Vec2f(bump_du_.at<float>(by, bx), bump_dv_.at<float>(by, bx));
   }
   screen_.resize(grid_uv_.size());
 
@@ -339,7 +363,8 @@ void CortexScene::buildMeshes() {
       const double a = kTwoPi * s / sectors;
       const cv::Vec3d p_s(r * std::cos(a), r * std::sin(a), rim_z + 0.04 * (r - r0));
       bone_c_.push_back(r_cs_ * p_s + t_cs_);
-      bone_uv_.emplace_back((p_s[0] + bone_half) * bone_k - 0.5, (p_s[1] + bone_half) * bone_k - 0.5);
+      bone_uv_.emplace_back((p_s[0] + bone_half) * bone_k - 0.5,
+                            (p_s[1] + bone_half) * bone_k - 0.5);
     }
   }
   for (int ring = 0; ring + 1 < static_cast<int>(rings.size()); ++ring) {
@@ -376,7 +401,8 @@ void CortexScene::render(const vision::StereoRig& rig, double t, Rasterizer& ras
   const int n = grid_n_;
   const double radius = spec_.radius_mm;
   // Deformed positions, then normals from the grid (central differences).
-  for (size_t i = 0; i < grid_uv_.size(); ++i) world_[i] = position(grid_uv_[i][0], grid_uv_[i][1], t);
+  for (size_t i = 0; i < grid_uv_.size(); ++i)
+    world_[i] = position(grid_uv_[i][0], grid_uv_[i][1], t);
   const cv::Vec3d z_s = r_cs_ * cv::Vec3d(0, 0, 1);
   const cv::Vec3d x_s = r_cs_ * cv::Vec3d(1, 0, 0);
   const cv::Vec3d y_s = r_cs_ * cv::Vec3d(0, 1, 0);
@@ -390,19 +416,23 @@ void CortexScene::render(const vision::StereoRig& rig, double t, Rasterizer& ras
       const cv::Vec2f& g = bump_grad_[static_cast<size_t>(j * n + i)];
       const double gu = g[0];
       const double gv = g[1];
-      normal_[static_cast<size_t>(j * n + i)] = cv::normalize(cv::normalize(nn) - gu * x_s - gv * y_s);
+      normal_[static_cast<size_t>(j * n + i)] =
+          cv::normalize(cv::normalize(nn) - gu * x_s - gv * y_s);
     }
   }
-  const double illum_t = 1.0 + spec_.illumination_drift * std::sin(kTwoPi * t / spec_.illumination_period_s);
+  const double illum_t =
+      1.0 + spec_.illumination_drift * std::sin(kTwoPi * t / spec_.illumination_period_s);
   const Shadow& sh = spec_.shadow;
   const bool shadow_on = sh.enabled && t >= sh.start_s && t <= sh.start_s + sh.duration_s;
-  const double shadow_x = shadow_on ? -(radius + 2 * sh.width_mm) +
-                                          (2 * radius + 4 * sh.width_mm) * (t - sh.start_s) / sh.duration_s
-                                    : 0.0;
+  const double shadow_x = shadow_on
+                              ? -(radius + 2 * sh.width_mm) + (2 * radius + 4 * sh.width_mm) *
+                                                                  (t - sh.start_s) / sh.duration_s
+                              : 0.0;
   const auto shadowAt = [&](double u, double v) {
     if (!shadow_on) return 1.0;
     const double across = 0.8 * u + 0.6 * v - shadow_x;
-    const double inside = std::clamp((sh.width_mm / 2 - std::abs(across)) / sh.softness_mm + 0.5, 0.0, 1.0);
+    const double inside =
+        std::clamp((sh.width_mm / 2 - std::abs(across)) / sh.softness_mm + 0.5, 0.0, 1.0);
     const double smooth = inside * inside * (3 - 2 * inside);
     return 1.0 - sh.depth * smooth;
   };
@@ -434,20 +464,23 @@ void CortexScene::render(const vision::StereoRig& rig, double t, Rasterizer& ras
       const cv::Vec3d& nn = normal_[i];
       const double diffuse = std::max(0.0, nn.dot(l));
       const cv::Vec2d& uv = grid_uv_[i];
-      const double illum = illum_t * (1.0 + spec_.illumination_gradient * (uv[0] - 0.5 * uv[1]) / radius);
+      const double illum =
+          illum_t * (1.0 + spec_.illumination_gradient * (uv[0] - 0.5 * uv[1]) / radius);
       const double shadow = shadowAt(uv[0], uv[1]);
       const double hdot = std::max(0.0, nn.dot(cv::normalize(l + view)));
       sv.a0 = static_cast<float>((uv[0] + extent) * k - 0.5);
       sv.a1 = static_cast<float>((uv[1] + extent) * k - 0.5);
       sv.a2 = static_cast<float>(illum * shadow * (0.5 + 0.6 * diffuse));
-      sv.s = static_cast<float>(spec_.specular_strength * std::pow(hdot, spec_.specular_shininess) * shadow);
+      sv.s = static_cast<float>(spec_.specular_strength * std::pow(hdot, spec_.specular_shininess) *
+                                shadow);
     }
     for (size_t i = 0; i < bone_c_.size(); ++i) {
       ScreenVertex& sv = bone_screen_[i];
       project(bone_c_[i], sv);
       sv.a0 = static_cast<float>(bone_uv_[i][0]);
       sv.a1 = static_cast<float>(bone_uv_[i][1]);
-      sv.a2 = static_cast<float>(illum_t * (0.4 + 0.6 * std::max(0.0, z_s.dot(cv::normalize(light_c_ - bone_c_[i])))));
+      sv.a2 = static_cast<float>(
+          illum_t * (0.4 + 0.6 * std::max(0.0, z_s.dot(cv::normalize(light_c_ - bone_c_[i])))));
       sv.s = 0.0F;
     }
     raster.clear(30.0F);
@@ -458,9 +491,10 @@ void CortexScene::render(const vision::StereoRig& rig, double t, Rasterizer& ras
         const cv::Vec3d p = tip_c + r_cs_ * tool_local_[i];
         ScreenVertex& sv = tool_screen_[i];
         project(p, sv);
-        const cv::Vec3d nn = i + 1 == tool_local_.size()
-                                 ? cv::Vec3d(r_cs_ * cv::Vec3d(1, 0, 0))
-                                 : cv::normalize(r_cs_ * cv::Vec3d(0, tool_local_[i][1], tool_local_[i][2]));
+        const cv::Vec3d nn =
+            i + 1 == tool_local_.size()
+                ? cv::Vec3d(r_cs_ * cv::Vec3d(1, 0, 0))
+                : cv::normalize(r_cs_ * cv::Vec3d(0, tool_local_[i][1], tool_local_[i][2]));
         const cv::Vec3d l = cv::normalize(light_c_ - p);
         const cv::Vec3d view = cv::normalize(centre - p);
         const double hdot = std::max(0.0, nn.dot(cv::normalize(l + view)));

@@ -11,8 +11,10 @@ vision::StereoRig paperRig() {
   // Two copies of the same lens, as a calibration would find them: slightly different.
   const double d1[5] = {-0.118, 0.42, 0.00061, -0.00043, -0.9};
   const double d2[5] = {-0.109, 0.37, -0.00032, 0.00052, -0.6};
-  rig.left = vision::CameraModel({f * 1.0004, 0, 683.2, 0, f * 0.9998, 508.9, 0, 0, 1}, d1, 5, size);
-  rig.right = vision::CameraModel({f * 0.9993, 0, 676.1, 0, f * 0.9996, 514.3, 0, 0, 1}, d2, 5, size);
+  rig.left =
+      vision::CameraModel({f * 1.0004, 0, 683.2, 0, f * 0.9998, 508.9, 0, 0, 1}, d1, 5, size);
+  rig.right =
+      vision::CameraModel({f * 0.9993, 0, 676.1, 0, f * 0.9996, 514.3, 0, 0, 1}, d2, 5, size);
   // The right camera 60 mm to the right of the left one, turned to look at (0, 0, 450) mm of
   // the left frame, with the small roll and tilt of a real bracket.
   const cv::Vec3d centre(60.0, 0.3, -1.2);

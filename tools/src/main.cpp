@@ -17,6 +17,8 @@ int main(int argc, char** argv) try {
   app.require_subcommand(1);
   std::map<std::string, pulsetrack::tools::CommandRunner> runners;
   runners["calibrate"] = pulsetrack::tools::addCalibrateCommand(app);
+  runners["simulate"] = pulsetrack::tools::addSimulateCommand(app);
+  runners["evaluate"] = pulsetrack::tools::addEvaluateCommand(app);
   CLI11_PARSE(app, argc, argv);
   for (const CLI::App* sub : app.get_subcommands()) {
     return runners.at(sub->get_name())();

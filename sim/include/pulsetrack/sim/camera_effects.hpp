@@ -9,12 +9,12 @@
 namespace pulsetrack::sim {
 
 struct CameraEffectsSpec {
-  double blur_sigma_px = 0.7;       // defocus, Gaussian
-  double noise_sigma = 2.0;         // grey levels
-  double vignetting = 0.25;         // relative fall-off at the image corner
-  double gain_amplitude = 0.0;      // relative, sinusoidal
+  double blur_sigma_px = 0.7;   // defocus, Gaussian
+  double noise_sigma = 2.0;     // grey levels
+  double vignetting = 0.25;     // relative fall-off at the image corner
+  double gain_amplitude = 0.0;  // relative, sinusoidal
   double gain_period_s = 30.0;
-  double drop_probability = 0.0;    // per frame
+  double drop_probability = 0.0;  // per frame
 };
 
 class CameraEffects {

@@ -21,7 +21,7 @@
 namespace pulsetrack::sim {
 
 struct Harmonic {
-  double multiple = 2.0;           // of the fundamental frequency
+  double multiple = 2.0;  // of the fundamental frequency
   double relative_amplitude = 0.0;
   double phase_rad = 0.0;
 };
@@ -30,12 +30,12 @@ struct Harmonic {
 // with signal(t) = sin(2 pi f t + phase) + sum_h r_h sin(2 pi m_h f t + phase_h) and
 // weight(u, v) = 1 + gradient . (u, v) / radius (so its mean over the patch is 1).
 struct Oscillation {
-  std::string name;                // "vasomotor", "breathing", "cardiac", ...
+  std::string name;  // "vasomotor", "breathing", "cardiac", ...
   double amplitude_mm = 0.0;
   double frequency_hz = 0.0;
   double phase_rad = 0.0;
   std::vector<Harmonic> harmonics;
-  cv::Vec2d gradient{0.0, 0.0};    // relative amplitude change per patch radius along u, v
+  cv::Vec2d gradient{0.0, 0.0};        // relative amplitude change per patch radius along u, v
   cv::Vec3d direction{0.0, 0.0, 1.0};  // in {S}; normalized on use
   bool enabled = true;
 };
@@ -55,10 +55,10 @@ struct Instrument {
   double start_s = 0.0;
   double duration_s = 4.0;
   double radius_mm = 3.0;
-  double height_mm = 25.0;         // above the patch centre
+  double height_mm = 25.0;          // above the patch centre
   cv::Vec2d from_mm{-60.0, -20.0};  // tip position in {S} (x, y) at start and end
   cv::Vec2d to_mm{-5.0, 0.0};
-  double length_mm = 120.0;         // the rod runs from the tip away along -x of {S}
+  double length_mm = 120.0;  // the rod runs from the tip away along -x of {S}
   double albedo = 0.45;
 };
 
@@ -67,7 +67,7 @@ struct Shadow {
   bool enabled = false;
   double start_s = 0.0;
   double duration_s = 5.0;
-  double depth = 0.45;      // 0: none, 1: black
+  double depth = 0.45;  // 0: none, 1: black
   double width_mm = 15.0;
   double softness_mm = 6.0;
 };
@@ -83,12 +83,16 @@ struct CortexSpec {
   double mesh_step_mm = 0.5;
   double texture_px_per_mm = 32.0;
   int vessel_trees = 16;
+  // "brain", or "dots": a test pattern of dark discs (radius 0.4 mm, every 4 mm from (0, 0))
+  // whose centroids a test can measure against the model's projection.
+  std::string texture = "brain";
   double tissue_albedo = 165.0;   // grey level of tissue under full light
   double vessel_contrast = 0.55;  // how much darker the largest vessels are
+  double wrinkle_slope = 1.0;     // scale of the wet-tissue wrinkles' slopes (0: smooth)
   double specular_strength = 600.0;
   double specular_shininess = 300.0;
   double illumination_gradient = 0.15;
-  double illumination_drift = 0.05;      // slow change of the light, relative
+  double illumination_drift = 0.05;  // slow change of the light, relative
   double illumination_period_s = 40.0;
   std::vector<Oscillation> oscillations;
   Sag sag;

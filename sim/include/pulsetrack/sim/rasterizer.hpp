@@ -19,7 +19,8 @@ namespace pulsetrack::sim {
 struct ScreenVertex {
   float x = 0, y = 0, z = 0;
   float a0 = 0, a1 = 0, a2 = 0, s = 0;
-  bool valid = false;  // false: behind the camera or not projectable; triangles using it are skipped
+  bool valid =
+      false;  // false: behind the camera or not projectable; triangles using it are skipped
 };
 
 class Rasterizer {

@@ -11,5 +11,7 @@ using CommandRunner = std::function<int()>;
 
 // Registers `calibrate` and returns what runs it once options are parsed.
 CommandRunner addCalibrateCommand(CLI::App& app);
+CommandRunner addSimulateCommand(CLI::App& app);
+CommandRunner addEvaluateCommand(CLI::App& app);
 
 }  // namespace pulsetrack::tools

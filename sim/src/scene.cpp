@@ -1,0 +1,318 @@
+#include "pulsetrack/sim/scene.hpp"
+
+#include <fmt/format.h>
+
+#include <fstream>
+#include <set>
+#include <sstream>
+#include <toml++/toml.h>
+
+namespace pulsetrack::sim {
+
+using vision::fail;
+
+namespace {
+
+// Reads a TOML table key by key; the first problem (wrong type, out of range, unknown key) is
+// kept with its file:line. Getters return the default after an error so parsing reads straight.
+class TableReader {
+ public:
+  TableReader(const toml::table& table, std::string file, std::string prefix, std::string* error)
+      : table_(table), file_(std::move(file)), prefix_(std::move(prefix)), error_(error) {}
+
+  double number(const char* key, double def, double lo, double hi) {
+    seen_.insert(key);
+    const toml::node* n = table_.get(key);
+    if (n == nullptr) return def;
+    const auto v = n->value<double>();
+    if (!v || !std::isfinite(*v) || *v < lo || *v > hi) {
+      fault(n, fmt::format("{}: expected a number in [{}, {}], got {}", name(key), lo, hi, text(n)));
+      return def;
+    }
+    return *v;
+  }
+  int integer(const char* key, int def, int lo, int hi) {
+    seen_.insert(key);
+    const toml::node* n = table_.get(key);
+    if (n == nullptr) return def;
+    const auto v = n->value_exact<int64_t>();
+    if (!v || *v < lo || *v > hi) {
+      fault(n, fmt::format("{}: expected an integer in [{}, {}], got {}", name(key), lo, hi, text(n)));
+      return def;
+    }
+    return static_cast<int>(*v);
+  }
+  bool boolean(const char* key, bool def) {
+    seen_.insert(key);
+    const toml::node* n = table_.get(key);
+    if (n == nullptr) return def;
+    const auto v = n->value_exact<bool>();
+    if (!v) {
+      fault(n, fmt::format("{}: expected true or false, got {}", name(key), text(n)));
+      return def;
+    }
+    return *v;
+  }
+  std::string string(const char* key, const std::string& def, const std::set<std::string>& allowed = {}) {
+    seen_.insert(key);
+    const toml::node* n = table_.get(key);
+    if (n == nullptr) return def;
+    const auto v = n->value_exact<std::string>();
+    if (!v || (!allowed.empty() && !allowed.contains(*v))) {
+      std::string list;
+      for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
+      fault(n, fmt::format("{}: expected {}, got {}", name(key),
+                           allowed.empty() ? std::string("a string") : "one of " + list, text(n)));
+      return def;
+    }
+    return *v;
+  }
+  std::vector<double> numbers(const char* key, const std::vector<double>& def, size_t count_lo,
+                              size_t count_hi, double lo, double hi) {
+    seen_.insert(key);
+    const toml::node* n = table_.get(key);
+    if (n == nullptr) return def;
+    const toml::array* a = n->as_array();
+    std::vector<double> out;
+    if (a != nullptr) {
+      for (const toml::node& e : *a) {
+        const auto v = e.value<double>();
+        if (!v || *v < lo || *v > hi) {
+          out.clear();
+          break;
+        }
+        out.push_back(*v);
+      }
+    }
+    if (a == nullptr || out.size() < count_lo || out.size() > count_hi ||
+        (out.empty() && count_lo > 0) || (a != nullptr && out.size() != a->size())) {
+      fault(n, fmt::format("{}: expected {} to {} numbers in [{}, {}]", name(key), count_lo, count_hi, lo, hi));
+      return def;
+    }
+    return out;
+  }
+  const toml::table* table(const char* key) {
+    seen_.insert(key);
+    const toml::node* n = table_.get(key);
+    if (n == nullptr) return nullptr;
+    if (!n->is_table()) {
+      fault(n, fmt::format("{}: expected a table", name(key)));
+      return nullptr;
+    }
+    return n->as_table();
+  }
+  const toml::array* arrayOfTables(const char* key) {
+    seen_.insert(key);
+    const toml::node* n = table_.get(key);
+    if (n == nullptr) return nullptr;
+    if (!n->is_array_of_tables()) {
+      fault(n, fmt::format("{}: expected an array of tables ([[{}]])", name(key), name(key)));
+      return nullptr;
+    }
+    return n->as_array();
+  }
+  // Unknown keys are errors: a typo must not silently fall back to a default.
+  void finish() {
+    for (const auto& [k, v] : table_) {
+      if (!seen_.contains(std::string(k.str()))) {
+        fault(&v, fmt::format("unknown key '{}'", name(std::string(k.str()).c_str())));
+      }
+    }
+  }
+  [[nodiscard]] const std::string& file() const { return file_; }
+  std::string* errorSink() const { return error_; }
+  [[nodiscard]] std::string child(const char* key) const { return name(key); }
+
+ private:
+  [[nodiscard]] std::string name(const char* key) const { return prefix_.empty() ? key : prefix_ + "." + key; }
+  static std::string text(const toml::node* n) {
+    std::ostringstream s;
+    n->visit([&s](const auto& v) { s << v; });
+    return s.str();
+  }
+  void fault(const toml::node* n, const std::string& what) {
+    if (!error_->empty()) return;
+    *error_ = fmt::format("{}:{}: {}", file_, n->source().begin.line, what);
+  }
+
+  const toml::table& table_;
+  std::string file_;
+  std::string prefix_;
+  std::string* error_;
+  std::set<std::string> seen_;
+};
+
+void readCamera(TableReader& r, CameraEffectsSpec& c) {
+  c.blur_sigma_px = r.number("blur_sigma_px", c.blur_sigma_px, 0.0, 10.0);
+  c.noise_sigma = r.number("noise_sigma", c.noise_sigma, 0.0, 50.0);
+  c.vignetting = r.number("vignetting", c.vignetting, 0.0, 0.9);
+  c.gain_amplitude = r.number("gain_amplitude", c.gain_amplitude, 0.0, 0.9);
+  c.gain_period_s = r.number("gain_period_s", c.gain_period_s, 0.1, 1e6);
+  c.drop_probability = r.number("drop_probability", c.drop_probability, 0.0, 0.5);
+  r.finish();
+}
+
+constexpr double kDeg = CV_PI / 180.0;
+
+void readOscillation(TableReader& r, Oscillation& o) {
+  o.name = r.string("name", o.name);
+  o.enabled = r.boolean("enabled", true);
+  o.amplitude_mm = r.number("amplitude_mm", o.amplitude_mm, 0.0, 20.0);
+  o.frequency_hz = r.number("frequency_hz", o.frequency_hz, 0.0, 20.0);
+  o.phase_rad = r.number("phase_deg", o.phase_rad / kDeg, -360.0, 360.0) * kDeg;
+  const auto g = r.numbers("gradient", {o.gradient[0], o.gradient[1]}, 2, 2, -0.9, 0.9);
+  o.gradient = {g[0], g[1]};
+  const auto d = r.numbers("direction", {o.direction[0], o.direction[1], o.direction[2]}, 3, 3, -1e3, 1e3);
+  o.direction = {d[0], d[1], d[2]};
+  if (const toml::array* hs = r.arrayOfTables("harmonics")) {
+    o.harmonics.clear();
+    for (size_t i = 0; i < hs->size(); ++i) {
+      TableReader hr(*hs->get(i)->as_table(), r.file(), r.child("harmonics") + fmt::format("[{}]", i), r.errorSink());
+      Harmonic h;
+      h.multiple = hr.number("multiple", 2.0, 1.0, 20.0);
+      h.relative_amplitude = hr.number("relative_amplitude", 0.0, 0.0, 10.0);
+      h.phase_rad = hr.number("phase_deg", 0.0, -360.0, 360.0) * kDeg;
+      hr.finish();
+      o.harmonics.push_back(h);
+    }
+  }
+  r.finish();
+}
+
+void readCortex(TableReader& r, CortexSpec& c) {
+  c.distance_mm = r.number("distance_mm", c.distance_mm, 200.0, 1000.0);
+  c.tilt_deg = r.number("tilt_deg", c.tilt_deg, 0.0, 70.0);
+  c.azimuth_deg = r.number("azimuth_deg", c.azimuth_deg, -360.0, 360.0);
+  const auto off = r.numbers("offset_mm", {c.offset_mm[0], c.offset_mm[1]}, 2, 2, -100.0, 100.0);
+  c.offset_mm = {off[0], off[1]};
+  c.radius_mm = r.number("radius_mm", c.radius_mm, 5.0, 60.0);
+  c.curvature_radius_mm = r.number("curvature_radius_mm", c.curvature_radius_mm, 20.0, 1e4);
+  c.gyri_amplitude_mm = r.number("gyri_amplitude_mm", c.gyri_amplitude_mm, 0.0, 5.0);
+  c.mesh_step_mm = r.number("mesh_step_mm", c.mesh_step_mm, 0.1, 2.0);
+  c.texture_px_per_mm = r.number("texture_px_per_mm", c.texture_px_per_mm, 4.0, 64.0);
+  c.vessel_trees = r.integer("vessel_trees", c.vessel_trees, 0, 100);
+  c.texture = r.string("texture", c.texture, {"brain", "dots"});
+  c.tissue_albedo = r.number("tissue_albedo", c.tissue_albedo, 10.0, 250.0);
+  c.vessel_contrast = r.number("vessel_contrast", c.vessel_contrast, 0.0, 0.95);
+  c.wrinkle_slope = r.number("wrinkle_slope", c.wrinkle_slope, 0.0, 5.0);
+  c.specular_strength = r.number("specular_strength", c.specular_strength, 0.0, 5000.0);
+  c.specular_shininess = r.number("specular_shininess", c.specular_shininess, 1.0, 5000.0);
+  c.illumination_gradient = r.number("illumination_gradient", c.illumination_gradient, 0.0, 0.9);
+  c.illumination_drift = r.number("illumination_drift", c.illumination_drift, 0.0, 0.9);
+  c.illumination_period_s = r.number("illumination_period_s", c.illumination_period_s, 0.1, 1e6);
+  if (const toml::array* motions = r.arrayOfTables("motion")) {
+    c.oscillations.clear();
+    for (size_t i = 0; i < motions->size(); ++i) {
+      TableReader mr(*motions->get(i)->as_table(), r.file(), r.child("motion") + fmt::format("[{}]", i), r.errorSink());
+      Oscillation o;
+      readOscillation(mr, o);
+      c.oscillations.push_back(o);
+    }
+  }
+  if (const toml::table* t = r.table("sag")) {
+    TableReader sr(*t, r.file(), r.child("sag"), r.errorSink());
+    c.sag.enabled = sr.boolean("enabled", true);
+    c.sag.depth_mm = sr.number("depth_mm", c.sag.depth_mm, 0.0, 30.0);
+    c.sag.time_constant_s = sr.number("time_constant_s", c.sag.time_constant_s, 1.0, 1e6);
+    sr.finish();
+  }
+  if (const toml::table* t = r.table("instrument")) {
+    TableReader ir(*t, r.file(), r.child("instrument"), r.errorSink());
+    Instrument& in = c.instrument;
+    in.enabled = ir.boolean("enabled", true);
+    in.start_s = ir.number("start_s", in.start_s, 0.0, 1e6);
+    in.duration_s = ir.number("duration_s", in.duration_s, 0.1, 1e6);
+    in.radius_mm = ir.number("radius_mm", in.radius_mm, 0.5, 20.0);
+    in.height_mm = ir.number("height_mm", in.height_mm, 1.0, 300.0);
+    const auto from = ir.numbers("from_mm", {in.from_mm[0], in.from_mm[1]}, 2, 2, -500.0, 500.0);
+    const auto to = ir.numbers("to_mm", {in.to_mm[0], in.to_mm[1]}, 2, 2, -500.0, 500.0);
+    in.from_mm = {from[0], from[1]};
+    in.to_mm = {to[0], to[1]};
+    in.albedo = ir.number("albedo", in.albedo, 0.0, 1.0);
+    ir.finish();
+  }
+  if (const toml::table* t = r.table("shadow")) {
+    TableReader hr(*t, r.file(), r.child("shadow"), r.errorSink());
+    Shadow& s = c.shadow;
+    s.enabled = hr.boolean("enabled", true);
+    s.start_s = hr.number("start_s", s.start_s, 0.0, 1e6);
+    s.duration_s = hr.number("duration_s", s.duration_s, 0.1, 1e6);
+    s.depth = hr.number("depth", s.depth, 0.0, 1.0);
+    s.width_mm = hr.number("width_mm", s.width_mm, 1.0, 200.0);
+    s.softness_mm = hr.number("softness_mm", s.softness_mm, 0.1, 100.0);
+    hr.finish();
+  }
+  r.finish();
+}
+
+void readPlate(TableReader& r, PlateSpec& p) {
+  p.protocol = r.string("protocol", "static", {"static", "dynamic"}) == "dynamic" ? PlateProtocol::kDynamic
+                                                                                 : PlateProtocol::kStatic;
+  p.registration_acquisitions = r.integer("registration_acquisitions", p.registration_acquisitions, 0, 1000);
+  p.sets = r.integer("sets", p.sets, 1, 100);
+  p.acquisitions_per_set = r.integer("acquisitions_per_set", p.acquisitions_per_set, 1, 1000);
+  p.frames_per_acquisition = r.integer("frames_per_acquisition", p.frames_per_acquisition, 1, 100000);
+  p.set_depths_mm = r.numbers("set_depths_mm", p.set_depths_mm, 1, 100, 200.0, 1000.0);
+  p.depth_spread_mm = r.number("depth_spread_mm", p.depth_spread_mm, 0.0, 100.0);
+  p.lateral_range_mm = r.number("lateral_range_mm", p.lateral_range_mm, 0.0, 100.0);
+  p.max_tilt_deg = r.number("max_tilt_deg", p.max_tilt_deg, 0.0, 60.0);
+  p.max_speed_mm_s = r.number("max_speed_mm_s", p.max_speed_mm_s, 0.0, 500.0);
+  p.max_angular_speed_deg_s = r.number("max_angular_speed_deg_s", p.max_angular_speed_deg_s, 0.0, 180.0);
+  p.tracker_noise_mm = r.number("tracker_noise_mm", p.tracker_noise_mm, 0.0, 5.0);
+  r.finish();
+}
+
+}  // namespace
+
+vision::Result<SceneSpec> parseScene(const std::string& text, const std::filesystem::path& path) {
+  const std::string file = path.string();
+  toml::table root;
+  try {
+    root = toml::parse(text, file);
+  } catch (const toml::parse_error& e) {
+    return fail(fmt::format("{}:{}: {}", file, e.source().begin.line, e.description()));
+  }
+  SceneSpec s;
+  s.source_text = text;
+  s.source_path = path;
+  std::string error;
+  TableReader r(root, file, "", &error);
+  s.name = r.string("name", path.stem().string());
+  const std::string kind = r.string("kind", "", {"cortex", "plate"});
+  if (kind.empty() && error.empty()) error = fmt::format("{}: key 'kind' is missing (cortex or plate)", file);
+  s.kind = kind == "plate" ? SceneKind::kPlate : SceneKind::kCortex;
+  const std::string rig = r.string("rig", "");
+  if (rig.empty() && error.empty()) error = fmt::format("{}: key 'rig' is missing (path of a rig YAML)", file);
+  s.rig_path = path.parent_path() / rig;
+  s.fps = r.number("fps", s.fps, 0.1, 1000.0);
+  s.frames = r.integer("frames", s.frames, 1, 10'000'000);
+  s.seed = static_cast<unsigned>(r.integer("seed", 1, 0, 1'000'000'000));
+  s.supersample = r.integer("supersample", s.supersample, 1, 4);
+  s.cortex.oscillations = paperMotion();
+  if (const toml::table* t = r.table("camera")) {
+    TableReader cr(*t, file, "camera", &error);
+    readCamera(cr, s.camera);
+  }
+  if (const toml::table* t = r.table("cortex")) {
+    TableReader cr(*t, file, "cortex", &error);
+    readCortex(cr, s.cortex);
+  }
+  if (const toml::table* t = r.table("plate")) {
+    TableReader pr(*t, file, "plate", &error);
+    readPlate(pr, s.plate);
+  }
+  r.finish();
+  if (!error.empty()) return fail(error);
+  s.cortex.seed = s.seed;
+  return s;
+}
+
+vision::Result<SceneSpec> loadScene(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  if (!in) return fail(fmt::format("{}: cannot open scene file", path.string()));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return parseScene(ss.str(), path);
+}
+
+}  // namespace pulsetrack::sim
