@@ -24,10 +24,13 @@ vision::Result<std::vector<TrackRow>> readTrackCsv(const std::filesystem::path& 
   std::ifstream in(path);
   if (!in) return fail(fmt::format("{}: cannot open track file", path.string()));
   std::string line;
-  if (!std::getline(in, line)) return fail(fmt::format("{}: empty file, expected the header '{}'", path.string(), kTrackCsvHeader));
+  if (!std::getline(in, line))
+    return fail(
+        fmt::format("{}: empty file, expected the header '{}'", path.string(), kTrackCsvHeader));
   if (!line.empty() && line.back() == '\r') line.pop_back();
   if (line != kTrackCsvHeader) {
-    return fail(fmt::format("{}:1: header must be '{}', got '{}'", path.string(), kTrackCsvHeader, line));
+    return fail(
+        fmt::format("{}:1: header must be '{}', got '{}'", path.string(), kTrackCsvHeader, line));
   }
   std::vector<TrackRow> rows;
   long lineno = 1;
@@ -40,17 +43,20 @@ vision::Result<std::vector<TrackRow>> readTrackCsv(const std::filesystem::path& 
     size_t start = 0;
     for (;;) {
       const size_t comma = line.find(',', start);
-      f.emplace_back(line.data() + start, (comma == std::string::npos ? line.size() : comma) - start);
+      f.emplace_back(line.data() + start,
+                     (comma == std::string::npos ? line.size() : comma) - start);
       if (comma == std::string::npos) break;
       start = comma + 1;
     }
     if (f.size() != 13) {
-      return fail(fmt::format("{}:{}: expected 13 fields, got {}", path.string(), lineno, f.size()));
+      return fail(
+          fmt::format("{}:{}: expected 13 fields, got {}", path.string(), lineno, f.size()));
     }
     TrackRow r;
     const char* names[] = {"frame", "t", "id", "xl", "yl", "xr", "yr", "x", "y", "z", "ncc", "nmi"};
     bool ok = parseField(f[0], r.frame) && parseField(f[2], r.id);
-    double* doubles[] = {&r.t, nullptr, nullptr, &r.xl, &r.yl, &r.xr, &r.yr, &r.x, &r.y, &r.z, &r.ncc, &r.nmi};
+    double* doubles[] = {&r.t,  nullptr, nullptr, &r.xl, &r.yl,  &r.xr,
+                         &r.yr, &r.x,    &r.y,    &r.z,  &r.ncc, &r.nmi};
     size_t bad = ok ? 99 : (parseField(f[0], r.frame) ? 2 : 0);
     for (size_t i = 0; ok && i < 12; ++i) {
       if (doubles[i] != nullptr && !parseField(f[i], *doubles[i])) {
@@ -64,7 +70,8 @@ vision::Result<std::vector<TrackRow>> readTrackCsv(const std::filesystem::path& 
       }
     }
     if (!ok) {
-      return fail(fmt::format("{}:{}: field '{}' is not a number: '{}'", path.string(), lineno, names[bad], f[bad]));
+      return fail(fmt::format("{}:{}: field '{}' is not a number: '{}'", path.string(), lineno,
+                              names[bad], f[bad]));
     }
     r.status = std::string(f[12]);
     if (r.status.empty()) return fail(fmt::format("{}:{}: empty status", path.string(), lineno));
@@ -73,13 +80,15 @@ vision::Result<std::vector<TrackRow>> readTrackCsv(const std::filesystem::path& 
   return rows;
 }
 
-vision::Result<void> writeTrackCsv(const std::filesystem::path& path, const std::vector<TrackRow>& rows) {
+vision::Result<void> writeTrackCsv(const std::filesystem::path& path,
+                                   const std::vector<TrackRow>& rows) {
   std::ofstream out(path);
   if (!out) return fail(fmt::format("{}: cannot open for writing", path.string()));
   out << kTrackCsvHeader << '\n';
   for (const TrackRow& r : rows) {
-    out << fmt::format("{},{:.6f},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.5f},{:.5f},{:.5f},{:.4f},{:.4f},{}\n", r.frame, r.t,
-                       r.id, r.xl, r.yl, r.xr, r.yr, r.x, r.y, r.z, r.ncc, r.nmi, r.status);
+    out << fmt::format(
+        "{},{:.6f},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.5f},{:.5f},{:.5f},{:.4f},{:.4f},{}\n", r.frame,
+        r.t, r.id, r.xl, r.yl, r.xr, r.yr, r.x, r.y, r.z, r.ncc, r.nmi, r.status);
   }
   if (!out) return fail(fmt::format("{}: write failed", path.string()));
   return {};

@@ -7,7 +7,8 @@
 
 namespace pulsetrack::sim {
 
-vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim, const std::vector<record::TrackRow>& rows,
+vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim,
+                                         const std::vector<record::TrackRow>& rows,
                                          double outlier_threshold_mm) {
   Evaluation ev;
   ev.outlier_threshold_mm = outlier_threshold_mm;
@@ -22,7 +23,8 @@ vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim, const std::
   std::vector<double> all;
   for (const record::TrackRow& r : rows) {
     if (r.frame < 0 || r.frame >= frames) {
-      return vision::fail(fmt::format("track row for frame {} but the scene has frames 0..{}", r.frame, frames - 1));
+      return vision::fail(fmt::format("track row for frame {} but the scene has frames 0..{}",
+                                      r.frame, frames - 1));
     }
     Truth& tr = truth[r.id];
     RowError re{r.frame, r.id, std::numeric_limits<double>::quiet_NaN(), {}};
@@ -43,7 +45,8 @@ vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim, const std::
         const Pose& pose = p->samples()[static_cast<size_t>(r.frame)].c_t_p;
         double best = 2.0;
         for (int k = 0; k < 6; ++k) {
-          const double d = cv::norm(pose * nominalFeatures()[static_cast<size_t>(k)] - cv::Vec3d(r.x, r.y, r.z));
+          const double d =
+              cv::norm(pose * nominalFeatures()[static_cast<size_t>(k)] - cv::Vec3d(r.x, r.y, r.z));
           if (d < best) {
             best = d;
             tr.plate_feature = k;
@@ -84,7 +87,8 @@ vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim, const std::
     ev.rms_mm = std::sqrt(sum2 / static_cast<double>(all.size()));
     std::sort(all.begin(), all.end());
     ev.median_mm = all[all.size() / 2];
-    ev.p99_mm = all[std::min(all.size() - 1, static_cast<size_t>(0.99 * static_cast<double>(all.size())))];
+    ev.p99_mm =
+        all[std::min(all.size() - 1, static_cast<size_t>(0.99 * static_cast<double>(all.size())))];
     ev.max_mm = all.back();
   }
   for (const auto& [id, es] : errors) {
@@ -98,8 +102,9 @@ vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim, const std::
     }
     fs.rms_mm = std::sqrt(s2 / static_cast<double>(es.size()));
     const Truth& tr = truth[id];
-    fs.truth = sim.cortex() != nullptr ? fmt::format("material ({:.3f}, {:.3f}) mm", tr.uv[0], tr.uv[1])
-                                       : fmt::format("plate feature {}", tr.plate_feature + 1);
+    fs.truth = sim.cortex() != nullptr
+                   ? fmt::format("material ({:.3f}, {:.3f}) mm", tr.uv[0], tr.uv[1])
+                   : fmt::format("plate feature {}", tr.plate_feature + 1);
     ev.per_feature.push_back(fs);
   }
   return ev;

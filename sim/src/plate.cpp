@@ -1,11 +1,11 @@
 #include "pulsetrack/sim/plate.hpp"
 
-#include "texture_paint.hpp"
-
 #include <cmath>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 #include <random>
+
+#include "texture_paint.hpp"
 
 namespace pulsetrack::sim {
 
@@ -31,15 +31,15 @@ Pose facingPose(const cv::Vec3d& centre, double tx, double ty, double rz) {
 
 const std::array<cv::Vec3d, 8>& nominalDivots() {
   static const std::array<cv::Vec3d, 8> kDivots = {
-      cv::Vec3d(30, 15, 0),   cv::Vec3d(15, 30, 0),  cv::Vec3d(30, -15, 0),  cv::Vec3d(15, -30, 0),
-      cv::Vec3d(-15, 30, 0),  cv::Vec3d(-30, 15, 0), cv::Vec3d(-15, -30, 0), cv::Vec3d(-30, -15, 0)};
+      cv::Vec3d(30, 15, 0),  cv::Vec3d(15, 30, 0),  cv::Vec3d(30, -15, 0),  cv::Vec3d(15, -30, 0),
+      cv::Vec3d(-15, 30, 0), cv::Vec3d(-30, 15, 0), cv::Vec3d(-15, -30, 0), cv::Vec3d(-30, -15, 0)};
   return kDivots;
 }
 
 const std::array<cv::Vec3d, 6>& nominalFeatures() {
-  static const std::array<cv::Vec3d, 6> kFeatures = {cv::Vec3d(10, 0, 0),  cv::Vec3d(5, 0, 0),
-                                                     cv::Vec3d(0, 10, 0),  cv::Vec3d(0, 5, 0),
-                                                     cv::Vec3d(0, -5, 0),  cv::Vec3d(0, -10, 0)};
+  static const std::array<cv::Vec3d, 6> kFeatures = {cv::Vec3d(10, 0, 0), cv::Vec3d(5, 0, 0),
+                                                     cv::Vec3d(0, 10, 0), cv::Vec3d(0, 5, 0),
+                                                     cv::Vec3d(0, -5, 0), cv::Vec3d(0, -10, 0)};
   return kFeatures;
 }
 
@@ -74,15 +74,23 @@ void PlateScene::buildTrajectory(double fps, unsigned seed) {
   std::uniform_real_distribution<double> pos(0.0, 1.0);
   std::normal_distribution<double> gauss(0.0, 1.0);
   const double tilt = spec_.max_tilt_deg * CV_PI / 180.0;
-  // Tracker noise on the markers' frame, sized so the divots (40 mm from its origin) move by
-  // tracker_noise_mm RMS: half of the variance from translation, half from rotation.
-  const double sigma_t = spec_.tracker_noise_mm / std::sqrt(6.0);
-  const double sigma_r = spec_.tracker_noise_mm / std::sqrt(2.0) / 45.0 / std::sqrt(2.0);
+  // Tracker noise on the markers' frame, sized so the divots move by tracker_noise_mm RMS:
+  // half of the variance from translation (3 sigma_t^2), half from rotation (for a small
+  // isotropic rotation, E|w x p|^2 = 2 sigma_r^2 |p|^2, p a divot in {M}).
+  double d2 = 0.0;
+  for (const cv::Vec3d& d : nominalDivots()) {
+    const cv::Vec3d p = p_t_m_.inverse() * d;
+    d2 += p.dot(p) / 8.0;
+  }
+  const double var = spec_.tracker_noise_mm * spec_.tracker_noise_mm;
+  const double sigma_t = std::sqrt(var / 2.0 / 3.0);
+  const double sigma_r = std::sqrt(var / 2.0 / (2.0 * d2));
   const auto measure = [&](const Pose& c_t_p) {
     const Pose truth = o_t_c_ * c_t_p * p_t_m_;
     const Pose noise{rodrigues({sigma_r * gauss(rng), sigma_r * gauss(rng), sigma_r * gauss(rng)}),
                      {sigma_t * gauss(rng), sigma_t * gauss(rng), sigma_t * gauss(rng)}};
-    return noise * truth;
+    return truth * noise;  // in the markers' frame: rotation noise about {O}'s origin, 2 m away,
+                           // would be 20x larger
   };
   const auto randomStatic = [&](double depth) {
     const cv::Vec3d centre(spec_.lateral_range_mm * unit(rng), spec_.lateral_range_mm * unit(rng),
@@ -100,7 +108,8 @@ void PlateScene::buildTrajectory(double fps, unsigned seed) {
     }
     for (int s = 0; s < spec_.sets; ++s) {
       for (int a = 0; a < spec_.acquisitions_per_set; ++a) {
-        const Pose p = randomStatic(spec_.set_depths_mm[static_cast<size_t>(s) % spec_.set_depths_mm.size()]);
+        const Pose p =
+            randomStatic(spec_.set_depths_mm[static_cast<size_t>(s) % spec_.set_depths_mm.size()]);
         samples_.push_back({s + 1, a, 0, t, p, measure(p)});
         t += dt;
       }
@@ -108,12 +117,14 @@ void PlateScene::buildTrajectory(double fps, unsigned seed) {
   } else {
     for (int s = 0; s < spec_.sets; ++s) {
       for (int a = 0; a < spec_.acquisitions_per_set; ++a) {
-        const Pose start = randomStatic(spec_.set_depths_mm[static_cast<size_t>(s) % spec_.set_depths_mm.size()]);
+        const Pose start =
+            randomStatic(spec_.set_depths_mm[static_cast<size_t>(s) % spec_.set_depths_mm.size()]);
         // Smooth motion: a translation and a rotation oscillating at ~0.15 Hz whose peak
         // speeds spread from slow to the protocol's maxima (so the three speed populations of
         // section 4.D.2 are all filled).
         const double v_peak = spec_.max_speed_mm_s * (0.08 + 0.92 * std::pow(pos(rng), 1.5));
-        const double w_peak = spec_.max_angular_speed_deg_s * CV_PI / 180.0 * (0.05 + 0.95 * std::pow(pos(rng), 1.5));
+        const double w_peak =
+            spec_.max_angular_speed_deg_s * CV_PI / 180.0 * (0.05 + 0.95 * std::pow(pos(rng), 1.5));
         const double f = 0.12 + 0.08 * pos(rng);
         const double phase = CV_PI * unit(rng);
         const cv::Vec3d dir = cv::normalize(cv::Vec3d(unit(rng), unit(rng), 0.5 * unit(rng)));
@@ -137,7 +148,8 @@ void PlateScene::buildTrajectory(double fps, unsigned seed) {
   const double sigma_d = spec_.tracker_noise_mm / std::sqrt(3.0);
   for (size_t i = 0; i < 8; ++i) {
     const cv::Vec3d truth = o_t_c_ * (first * nominalDivots()[i]);
-    digitized_[i] = truth + cv::Vec3d(sigma_d * gauss(rng), sigma_d * gauss(rng), sigma_d * gauss(rng));
+    digitized_[i] =
+        truth + cv::Vec3d(sigma_d * gauss(rng), sigma_d * gauss(rng), sigma_d * gauss(rng));
   }
 }
 
@@ -149,16 +161,20 @@ void PlateScene::buildTexture() {
   rng.fill(tex, cv::RNG::NORMAL, 0.0, 1.0);
   cv::GaussianBlur(tex, tex, cv::Size(0, 0), 0.4 * k);
   tex = 200.0F + 6.0F * tex;  // matt white plastic with a faint texture
-  const auto to_px = [&](const cv::Vec3d& p) { return cv::Point2d((p[0] + kHalf) * k - 0.5, (p[1] + kHalf) * k - 0.5); };
+  const auto to_px = [&](const cv::Vec3d& p) {
+    return cv::Point2d((p[0] + kHalf) * k - 0.5, (p[1] + kHalf) * k - 0.5);
+  };
   const auto hole = [&](const cv::Vec3d& centre, double radius_mm, double depth_dark, double rim) {
-    paintDisc(tex, to_px(centre), radius_mm * k, [&](double q) { return 1.0 - depth_dark * (1.0 - rim * q); });
+    paintDisc(tex, to_px(centre), radius_mm * k,
+              [&](double q) { return 1.0 - depth_dark * (1.0 - rim * q); });
   };
   // Features: conical holes 0.5 mm across, darkest at the apex (eq. 5).
   for (const cv::Vec3d& f : nominalFeatures()) hole(f, 0.25, 0.85, 0.8);
   // Divots: 3 mm hemispherical holes (eq. 4), shaded.
   for (const cv::Vec3d& d : nominalDivots()) hole(d, 1.5, 0.55, 0.5);
   // LED markers at the corners (what the tracker sees), dark housings.
-  for (const cv::Vec3d& m : {cv::Vec3d(35, 35, 0), cv::Vec3d(-35, 35, 0), cv::Vec3d(35, -35, 0), cv::Vec3d(-35, -35, 0)}) {
+  for (const cv::Vec3d& m : {cv::Vec3d(35, 35, 0), cv::Vec3d(-35, 35, 0), cv::Vec3d(35, -35, 0),
+                             cv::Vec3d(-35, -35, 0)}) {
     hole(m, 2.5, 0.8, 0.0);
   }
   texture_ = tex;

@@ -1,11 +1,11 @@
 #include "pulsetrack/sim/scene.hpp"
 
 #include <fmt/format.h>
+#include <toml++/toml.h>
 
 #include <fstream>
 #include <set>
 #include <sstream>
-#include <toml++/toml.h>
 
 namespace pulsetrack::sim {
 
@@ -26,7 +26,8 @@ class TableReader {
     if (n == nullptr) return def;
     const auto v = n->value<double>();
     if (!v || !std::isfinite(*v) || *v < lo || *v > hi) {
-      fault(n, fmt::format("{}: expected a number in [{}, {}], got {}", name(key), lo, hi, text(n)));
+      fault(n,
+            fmt::format("{}: expected a number in [{}, {}], got {}", name(key), lo, hi, text(n)));
       return def;
     }
     return *v;
@@ -37,7 +38,8 @@ class TableReader {
     if (n == nullptr) return def;
     const auto v = n->value_exact<int64_t>();
     if (!v || *v < lo || *v > hi) {
-      fault(n, fmt::format("{}: expected an integer in [{}, {}], got {}", name(key), lo, hi, text(n)));
+      fault(n,
+            fmt::format("{}: expected an integer in [{}, {}], got {}", name(key), lo, hi, text(n)));
       return def;
     }
     return static_cast<int>(*v);
@@ -53,7 +55,8 @@ class TableReader {
     }
     return *v;
   }
-  std::string string(const char* key, const std::string& def, const std::set<std::string>& allowed = {}) {
+  std::string string(const char* key, const std::string& def,
+                     const std::set<std::string>& allowed = {}) {
     seen_.insert(key);
     const toml::node* n = table_.get(key);
     if (n == nullptr) return def;
@@ -86,7 +89,8 @@ class TableReader {
     }
     if (a == nullptr || out.size() < count_lo || out.size() > count_hi ||
         (out.empty() && count_lo > 0) || (a != nullptr && out.size() != a->size())) {
-      fault(n, fmt::format("{}: expected {} to {} numbers in [{}, {}]", name(key), count_lo, count_hi, lo, hi));
+      fault(n, fmt::format("{}: expected {} to {} numbers in [{}, {}]", name(key), count_lo,
+                           count_hi, lo, hi));
       return def;
     }
     return out;
@@ -124,7 +128,9 @@ class TableReader {
   [[nodiscard]] std::string child(const char* key) const { return name(key); }
 
  private:
-  [[nodiscard]] std::string name(const char* key) const { return prefix_.empty() ? key : prefix_ + "." + key; }
+  [[nodiscard]] std::string name(const char* key) const {
+    return prefix_.empty() ? key : prefix_ + "." + key;
+  }
   static std::string text(const toml::node* n) {
     std::ostringstream s;
     n->visit([&s](const auto& v) { s << v; });
@@ -162,12 +168,14 @@ void readOscillation(TableReader& r, Oscillation& o) {
   o.phase_rad = r.number("phase_deg", o.phase_rad / kDeg, -360.0, 360.0) * kDeg;
   const auto g = r.numbers("gradient", {o.gradient[0], o.gradient[1]}, 2, 2, -0.9, 0.9);
   o.gradient = {g[0], g[1]};
-  const auto d = r.numbers("direction", {o.direction[0], o.direction[1], o.direction[2]}, 3, 3, -1e3, 1e3);
+  const auto d =
+      r.numbers("direction", {o.direction[0], o.direction[1], o.direction[2]}, 3, 3, -1e3, 1e3);
   o.direction = {d[0], d[1], d[2]};
   if (const toml::array* hs = r.arrayOfTables("harmonics")) {
     o.harmonics.clear();
     for (size_t i = 0; i < hs->size(); ++i) {
-      TableReader hr(*hs->get(i)->as_table(), r.file(), r.child("harmonics") + fmt::format("[{}]", i), r.errorSink());
+      TableReader hr(*hs->get(i)->as_table(), r.file(),
+                     r.child("harmonics") + fmt::format("[{}]", i), r.errorSink());
       Harmonic h;
       h.multiple = hr.number("multiple", 2.0, 1.0, 20.0);
       h.relative_amplitude = hr.number("relative_amplitude", 0.0, 0.0, 10.0);
@@ -203,7 +211,8 @@ void readCortex(TableReader& r, CortexSpec& c) {
   if (const toml::array* motions = r.arrayOfTables("motion")) {
     c.oscillations.clear();
     for (size_t i = 0; i < motions->size(); ++i) {
-      TableReader mr(*motions->get(i)->as_table(), r.file(), r.child("motion") + fmt::format("[{}]", i), r.errorSink());
+      TableReader mr(*motions->get(i)->as_table(), r.file(),
+                     r.child("motion") + fmt::format("[{}]", i), r.errorSink());
       Oscillation o;
       readOscillation(mr, o);
       c.oscillations.push_back(o);
@@ -246,18 +255,22 @@ void readCortex(TableReader& r, CortexSpec& c) {
 }
 
 void readPlate(TableReader& r, PlateSpec& p) {
-  p.protocol = r.string("protocol", "static", {"static", "dynamic"}) == "dynamic" ? PlateProtocol::kDynamic
-                                                                                 : PlateProtocol::kStatic;
-  p.registration_acquisitions = r.integer("registration_acquisitions", p.registration_acquisitions, 0, 1000);
+  p.protocol = r.string("protocol", "static", {"static", "dynamic"}) == "dynamic"
+                   ? PlateProtocol::kDynamic
+                   : PlateProtocol::kStatic;
+  p.registration_acquisitions =
+      r.integer("registration_acquisitions", p.registration_acquisitions, 0, 1000);
   p.sets = r.integer("sets", p.sets, 1, 100);
   p.acquisitions_per_set = r.integer("acquisitions_per_set", p.acquisitions_per_set, 1, 1000);
-  p.frames_per_acquisition = r.integer("frames_per_acquisition", p.frames_per_acquisition, 1, 100000);
+  p.frames_per_acquisition =
+      r.integer("frames_per_acquisition", p.frames_per_acquisition, 1, 100000);
   p.set_depths_mm = r.numbers("set_depths_mm", p.set_depths_mm, 1, 100, 200.0, 1000.0);
   p.depth_spread_mm = r.number("depth_spread_mm", p.depth_spread_mm, 0.0, 100.0);
   p.lateral_range_mm = r.number("lateral_range_mm", p.lateral_range_mm, 0.0, 100.0);
   p.max_tilt_deg = r.number("max_tilt_deg", p.max_tilt_deg, 0.0, 60.0);
   p.max_speed_mm_s = r.number("max_speed_mm_s", p.max_speed_mm_s, 0.0, 500.0);
-  p.max_angular_speed_deg_s = r.number("max_angular_speed_deg_s", p.max_angular_speed_deg_s, 0.0, 180.0);
+  p.max_angular_speed_deg_s =
+      r.number("max_angular_speed_deg_s", p.max_angular_speed_deg_s, 0.0, 180.0);
   p.tracker_noise_mm = r.number("tracker_noise_mm", p.tracker_noise_mm, 0.0, 5.0);
   r.finish();
 }
@@ -279,10 +292,12 @@ vision::Result<SceneSpec> parseScene(const std::string& text, const std::filesys
   TableReader r(root, file, "", &error);
   s.name = r.string("name", path.stem().string());
   const std::string kind = r.string("kind", "", {"cortex", "plate"});
-  if (kind.empty() && error.empty()) error = fmt::format("{}: key 'kind' is missing (cortex or plate)", file);
+  if (kind.empty() && error.empty())
+    error = fmt::format("{}: key 'kind' is missing (cortex or plate)", file);
   s.kind = kind == "plate" ? SceneKind::kPlate : SceneKind::kCortex;
   const std::string rig = r.string("rig", "");
-  if (rig.empty() && error.empty()) error = fmt::format("{}: key 'rig' is missing (path of a rig YAML)", file);
+  if (rig.empty() && error.empty())
+    error = fmt::format("{}: key 'rig' is missing (path of a rig YAML)", file);
   s.rig_path = path.parent_path() / rig;
   s.fps = r.number("fps", s.fps, 0.1, 1000.0);
   s.frames = r.integer("frames", s.frames, 1, 10'000'000);

@@ -47,7 +47,8 @@ void StereoSimulator::render(int i, cv::Mat& left, cv::Mat& right) {
   if (cortex_) {
     cortex_->render(rig_, t, raster_, radiance_l_, radiance_r_);
   } else {
-    plate_->render(rig_, plate_->samples().at(static_cast<size_t>(i)).c_t_p, raster_, radiance_l_, radiance_r_);
+    plate_->render(rig_, plate_->samples().at(static_cast<size_t>(i)).c_t_p, raster_, radiance_l_,
+                   radiance_r_);
   }
   left_fx_.apply(radiance_l_, t, left);
   right_fx_.apply(radiance_r_, t, right);
@@ -59,8 +60,8 @@ std::string poseColumns(const Pose& p) {
   Eigen::Matrix3d r;
   cv::cv2eigen(cv::Mat(p.r), r);
   const Eigen::Quaterniond q(r);
-  return fmt::format("{:.9f},{:.9f},{:.9f},{:.12f},{:.12f},{:.12f},{:.12f}", p.t[0], p.t[1], p.t[2], q.w(), q.x(),
-                     q.y(), q.z());
+  return fmt::format("{:.9f},{:.9f},{:.9f},{:.12f},{:.12f},{:.12f},{:.12f}", p.t[0], p.t[1], p.t[2],
+                     q.w(), q.x(), q.y(), q.z());
 }
 
 int64_t toNs(double t) { return static_cast<int64_t>(std::llround(t * 1e9)); }
@@ -108,20 +109,24 @@ vision::Result<void> writeSimulation(StereoSimulator& sim, const std::filesystem
       cv::Vec3d com(0, 0, 0);
       for (const cv::Vec2d& uv : material) com += cortex->position(uv[0], uv[1], sim.frameTime(i));
       com *= 1.0 / static_cast<double>(material.size());
-      truth += fmt::format("{},{},{},{:.9f},{:.9f},{:.9f}\n", i, toNs(sim.frameTime(i)), sim.dropped(i) ? 0 : 1,
-                           com[0], com[1], com[2]);
+      truth += fmt::format("{},{},{},{:.9f},{:.9f},{:.9f}\n", i, toNs(sim.frameTime(i)),
+                           sim.dropped(i) ? 0 : 1, com[0], com[1], com[2]);
     }
     if (auto ok = writeText(out / "truth/cortex.csv", truth); !ok) return ok;
   } else if (const PlateScene* plate = sim.plate()) {
     truth = "frame,t_ns,recorded,set,acquisition,frame_in_acquisition,tx,ty,tz,qw,qx,qy,qz\n";
     std::string tracker = "frame,t_ns,tx,ty,tz,q0,qx,qy,qz\n";
+    std::string tracker_true = tracker;
     for (int i = 0; i < n; ++i) {
       const PlateSample& s = plate->samples()[static_cast<size_t>(i)];
-      truth += fmt::format("{},{},{},{},{},{},{}\n", i, toNs(s.t), sim.dropped(i) ? 0 : 1, s.set, s.acquisition,
-                           s.frame_in_acquisition, poseColumns(s.c_t_p));
+      truth += fmt::format("{},{},{},{},{},{},{}\n", i, toNs(s.t), sim.dropped(i) ? 0 : 1, s.set,
+                           s.acquisition, s.frame_in_acquisition, poseColumns(s.c_t_p));
       tracker += fmt::format("{},{},{}\n", i, toNs(s.t), poseColumns(s.o_t_m));
+      tracker_true += fmt::format("{},{},{}\n", i, toNs(s.t),
+                                  poseColumns(plate->oTc() * s.c_t_p * plate->pTm()));
     }
     if (auto ok = writeText(out / "truth/plate.csv", truth); !ok) return ok;
+    if (auto ok = writeText(out / "truth/tracker_markers.csv", tracker_true); !ok) return ok;
     std::filesystem::create_directories(out / "tracker", ec);
     if (auto ok = writeText(out / "tracker/markers.csv", tracker); !ok) return ok;
     std::string divots = "divot,x,y,z\n";
@@ -130,14 +135,15 @@ vision::Result<void> writeSimulation(StereoSimulator& sim, const std::filesystem
       divots += fmt::format("{},{:.6f},{:.6f},{:.6f}\n", d + 1, p[0], p[1], p[2]);
     }
     if (auto ok = writeText(out / "tracker/divots.csv", divots); !ok) return ok;
-    if (auto ok = writeText(out / "tracker/digitization_markers.csv",
-                            "tx,ty,tz,q0,qx,qy,qz\n" + poseColumns(plate->digitizationMarkers()) + "\n");
+    if (auto ok =
+            writeText(out / "tracker/digitization_markers.csv",
+                      "tx,ty,tz,q0,qx,qy,qz\n" + poseColumns(plate->digitizationMarkers()) + "\n");
         !ok) {
       return ok;
     }
-    if (auto ok = writeText(out / "truth/transforms.csv", "name,tx,ty,tz,qw,qx,qy,qz\nO_T_C," +
-                                                              poseColumns(plate->oTc()) + "\nP_T_M," +
-                                                              poseColumns(plate->pTm()) + "\n");
+    if (auto ok = writeText(out / "truth/transforms.csv",
+                            "name,tx,ty,tz,qw,qx,qy,qz\nO_T_C," + poseColumns(plate->oTc()) +
+                                "\nP_T_M," + poseColumns(plate->pTm()) + "\n");
         !ok) {
       return ok;
     }
@@ -148,7 +154,8 @@ vision::Result<void> writeSimulation(StereoSimulator& sim, const std::filesystem
     if (!sim.dropped(i)) {
       sim.render(i, left, right);
       const int64_t t = toNs(sim.frameTime(i));
-      const record::FrameMeta meta{static_cast<uint64_t>(i), 1000ULL + static_cast<uint64_t>(i), t, t, 0};
+      const record::FrameMeta meta{static_cast<uint64_t>(i), 1000ULL + static_cast<uint64_t>(i), t,
+                                   t, 0};
       if (auto ok = writer->write(meta, left, right); !ok) return ok;
     }
     if (progress) progress(i + 1, n);

@@ -55,9 +55,10 @@ TEST(CortexRender, DotCentroidsLandOnTheirProjection) {
           cv::Mat a_mat(0, 3, CV_64FC1);
           cv::Mat b_vec(0, 1, CV_64FC1);
           for (int k = -r; k <= r; ++k) {
-            for (const cv::Point q : {cv::Point(x0 + k, y0 - r), cv::Point(x0 + k, y0 + r), cv::Point(x0 - r, y0 + k),
-                                      cv::Point(x0 + r, y0 + k)}) {
-              const double row[3] = {1.0, static_cast<double>(q.x - x0), static_cast<double>(q.y - y0)};
+            for (const cv::Point q : {cv::Point(x0 + k, y0 - r), cv::Point(x0 + k, y0 + r),
+                                      cv::Point(x0 - r, y0 + k), cv::Point(x0 + r, y0 + k)}) {
+              const double row[3] = {1.0, static_cast<double>(q.x - x0),
+                                     static_cast<double>(q.y - y0)};
               a_mat.push_back(cv::Mat(1, 3, CV_64FC1, const_cast<double*>(row)));
               b_vec.push_back(static_cast<double>(img.at<float>(q)));
             }
@@ -67,7 +68,8 @@ TEST(CortexRender, DotCentroidsLandOnTheirProjection) {
           double sw = 0, sx = 0, sy = 0;
           for (int y = y0 - r + 1; y < y0 + r; ++y) {
             for (int x = x0 - r + 1; x < x0 + r; ++x) {
-              const double bg = plane.at<double>(0) + plane.at<double>(1) * (x - x0) + plane.at<double>(2) * (y - y0);
+              const double bg = plane.at<double>(0) + plane.at<double>(1) * (x - x0) +
+                                plane.at<double>(2) * (y - y0);
               const double w = std::max(0.0, bg - img.at<float>(y, x) - 1.0);
               sw += w;
               sx += w * x;
@@ -83,8 +85,8 @@ TEST(CortexRender, DotCentroidsLandOnTheirProjection) {
       }
     }
   }
-  std::cout << n << " rendered cortex dots (both cameras, at rest and moving): RMS " << std::sqrt(sum2 / n)
-            << " px, max " << worst << " px from the model's projection\n";
+  std::cout << n << " rendered cortex dots (both cameras, at rest and moving): RMS "
+            << std::sqrt(sum2 / n) << " px, max " << worst << " px from the model's projection\n";
   EXPECT_GT(n, 300);
   EXPECT_LT(worst, 0.05);
 }
@@ -120,7 +122,8 @@ TEST(CortexMotion, SpectrumHoldsExactlyTheConfiguredComponents) {
       for (int a = 0; a < 3; ++a) expected[bin][a] += amp * std::abs(dir_c[a]);
     };
     add(o.frequency_hz, o.amplitude_mm);
-    for (const Harmonic& h : o.harmonics) add(h.multiple * o.frequency_hz, o.amplitude_mm * h.relative_amplitude);
+    for (const Harmonic& h : o.harmonics)
+      add(h.multiple * o.frequency_hz, o.amplitude_mm * h.relative_amplitude);
   }
   for (int a = 0; a < 3; ++a) {
     cv::Mat row = signal.row(a).clone();
@@ -166,7 +169,8 @@ TEST(CortexScene, MaterialPointsRoundTripThroughTheLeftImage) {
   for (double t : {0.0, 1.7}) {
     for (const cv::Vec2d& uv : {cv::Vec2d(0, 0), cv::Vec2d(12.3, -7.9), cv::Vec2d(-20.1, 15.2)}) {
       cv::Vec2d found;
-      ASSERT_TRUE(scene.materialAt(rig, rig.projectLeft(scene.position(uv[0], uv[1], t)), t, found));
+      ASSERT_TRUE(
+          scene.materialAt(rig, rig.projectLeft(scene.position(uv[0], uv[1], t)), t, found));
       EXPECT_NEAR(found[0], uv[0], 1e-6);
       EXPECT_NEAR(found[1], uv[1], 1e-6);
     }
@@ -185,13 +189,14 @@ TEST(CortexScene, InstrumentOccludesWhatIsBeneathIt) {
   // At mid-crossing the tip is over `to_mm`; the point of the surface on the camera ray
   // through the tip's axis is hidden.
   const double t_mid = 12.0;
-  const cv::Vec3d tip = scene.rotation() * cv::Vec3d(spec.instrument.to_mm[0] - 10.0, spec.instrument.to_mm[1],
-                                                      spec.instrument.height_mm) +
-                        scene.translation();
+  const cv::Vec3d tip =
+      scene.rotation() * cv::Vec3d(spec.instrument.to_mm[0] - 10.0, spec.instrument.to_mm[1],
+                                   spec.instrument.height_mm) +
+      scene.translation();
   const cv::Vec3d behind = tip * 1.05;  // further along the same camera ray
   EXPECT_TRUE(scene.occluded(behind, camera, t_mid));
-  EXPECT_FALSE(scene.occluded(behind, camera, 9.0));   // before it enters
-  EXPECT_FALSE(scene.occluded(behind, camera, 14.5));  // after it left
+  EXPECT_FALSE(scene.occluded(behind, camera, 9.0));                           // before it enters
+  EXPECT_FALSE(scene.occluded(behind, camera, 14.5));                          // after it left
   EXPECT_FALSE(scene.occluded(scene.position(25, 20, t_mid), camera, t_mid));  // far from the rod
 }
 

@@ -47,8 +47,9 @@ int runSimulate(const SimulateArgs& a) {
   sim::StereoSimulator simulator(*spec, *rig);
   const int n = simulator.frameCount();
   if (!a.quiet) {
-    fmt::print(stderr, "simulating {} ({} frames at {} fps, {}x{}, supersample {}) into {}\n", spec->name, n,
-               spec->fps, rig->left.imageSize().width, rig->left.imageSize().height, spec->supersample, a.out);
+    fmt::print(stderr, "simulating {} ({} frames at {} fps, {}x{}, supersample {}) into {}\n",
+               spec->name, n, spec->fps, rig->left.imageSize().width, rig->left.imageSize().height,
+               spec->supersample, a.out);
   }
   const auto start = std::chrono::steady_clock::now();
   int last_pct = -1;
@@ -56,7 +57,8 @@ int runSimulate(const SimulateArgs& a) {
     const int pct = 100 * done / total;
     if (a.quiet || (pct / 10 == last_pct / 10 && done != total)) return;
     last_pct = pct;
-    const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    const double elapsed =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     const double rate = done / std::max(elapsed, 1e-9);
     fmt::print(stderr, "  frame {}/{} ({}%), {:.1f} frames/s, {} left\n", done, total, pct, rate,
                duration((total - done) / std::max(rate, 1e-9)));
@@ -64,8 +66,10 @@ int runSimulate(const SimulateArgs& a) {
   if (!ok) return error("simulate", ok.error().message);
   int dropped = 0;
   for (int i = 0; i < n; ++i) dropped += simulator.dropped(i) ? 1 : 0;
-  fmt::print("recording written to {}: {} frames ({} dropped by the simulated camera), ground truth in {}/truth\n",
-             a.out, n - dropped, dropped, a.out);
+  fmt::print(
+      "recording written to {}: {} frames ({} dropped by the simulated camera), ground truth in "
+      "{}/truth\n",
+      a.out, n - dropped, dropped, a.out);
   return 0;
 }
 
@@ -80,8 +84,8 @@ int runEvaluate(const EvaluateArgs& a) {
   const std::filesystem::path dir(a.recording);
   auto spec = sim::loadScene(dir / "scene.toml");
   if (!spec) {
-    return error("evaluate", fmt::format("{} is not a simulated recording (its scene.toml: {})", a.recording,
-                                         spec.error().message));
+    return error("evaluate", fmt::format("{} is not a simulated recording (its scene.toml: {})",
+                                         a.recording, spec.error().message));
   }
   auto reader = record::Reader::open(dir);
   if (!reader) return error("evaluate", reader.error().message);
@@ -110,19 +114,21 @@ int runEvaluate(const EvaluateArgs& a) {
       "outliers > {:.2f} mm    {} ({:.2f} % of ok rows)\n",
       ev->features, ev->unmatched, ev->rows_ok, ev->rms_mm, ev->median_mm, ev->p99_mm, ev->max_mm,
       ev->outlier_threshold_mm, ev->outliers,
-      ev->rows_ok > 0 ? 100.0 * static_cast<double>(ev->outliers) / static_cast<double>(ev->rows_ok) : 0.0);
+      ev->rows_ok > 0 ? 100.0 * static_cast<double>(ev->outliers) / static_cast<double>(ev->rows_ok)
+                      : 0.0);
   if (worst != nullptr) {
-    fmt::print("per-feature RMS       median {:.4f} mm, worst {:.4f} mm (id {}, {})\n", per[per.size() / 2],
-               worst->rms_mm, worst->id, worst->truth);
+    fmt::print("per-feature RMS       median {:.4f} mm, worst {:.4f} mm (id {}, {})\n",
+               per[per.size() / 2], worst->rms_mm, worst->id, worst->truth);
   }
-  fmt::print("rows not ok           {}{}\n", not_ok_rows, not_ok.empty() ? "" : " (" + not_ok + ")");
+  fmt::print("rows not ok           {}{}\n", not_ok_rows,
+             not_ok.empty() ? "" : " (" + not_ok + ")");
   if (!a.out.empty()) {
     std::ofstream f(a.out);
     f << "frame,id,error_mm,ex,ey,ez\n";
     for (const auto& r : ev->rows) {
       if (std::isnan(r.error_mm)) continue;
-      f << fmt::format("{},{},{:.6f},{:.6f},{:.6f},{:.6f}\n", r.frame, r.id, r.error_mm, r.error_vec[0],
-                       r.error_vec[1], r.error_vec[2]);
+      f << fmt::format("{},{},{:.6f},{:.6f},{:.6f},{:.6f}\n", r.frame, r.id, r.error_mm,
+                       r.error_vec[0], r.error_vec[1], r.error_vec[2]);
     }
     if (!f) return error("evaluate", fmt::format("{}: write failed", a.out));
     fmt::print("per-row errors        {}\n", a.out);
@@ -134,14 +140,19 @@ int runEvaluate(const EvaluateArgs& a) {
 
 CommandRunner addSimulateCommand(CLI::App& app) {
   auto args = std::make_shared<SimulateArgs>();
-  CLI::App* cmd = app.add_subcommand(
-      "simulate",
-      "Render a scene (config/scenes/*.toml: cortex, plate-static, plate-dynamic) through its rig into a "
-      "recording with ground truth (docs/recording-format.md).");
-  cmd->add_option("--scene", args->scene, "Scene file (TOML)")->required()->check(CLI::ExistingFile);
-  cmd->add_option("--out", args->out, "Recording folder to create (must not exist or be empty)")->required();
-  cmd->add_option("--frames", args->frames, "Frames to render (default: the scene's)")->check(CLI::Range(1, 10'000'000));
-  cmd->add_option("--fps", args->fps, "Frame rate (default: the scene's)")->check(CLI::Range(0.1, 1000.0));
+  CLI::App* cmd = app.add_subcommand("simulate",
+                                     "Render a scene (config/scenes/*.toml: cortex, plate-static, "
+                                     "plate-dynamic) through its rig into a "
+                                     "recording with ground truth (docs/recording-format.md).");
+  cmd->add_option("--scene", args->scene, "Scene file (TOML)")
+      ->required()
+      ->check(CLI::ExistingFile);
+  cmd->add_option("--out", args->out, "Recording folder to create (must not exist or be empty)")
+      ->required();
+  cmd->add_option("--frames", args->frames, "Frames to render (default: the scene's)")
+      ->check(CLI::Range(1, 10'000'000));
+  cmd->add_option("--fps", args->fps, "Frame rate (default: the scene's)")
+      ->check(CLI::Range(0.1, 1000.0));
   cmd->add_option("--supersample", args->supersample, "Anti-aliasing samples per pixel side (1-4)")
       ->check(CLI::Range(1, 4));
   cmd->add_flag("-q,--quiet", args->quiet, "No progress lines");
@@ -151,10 +162,13 @@ CommandRunner addSimulateCommand(CLI::App& app) {
 CommandRunner addEvaluateCommand(CLI::App& app) {
   auto args = std::make_shared<EvaluateArgs>();
   CLI::App* cmd = app.add_subcommand(
-      "evaluate", "Score a track (CSV from `pulsetrack track`) against a simulated recording's ground truth.");
+      "evaluate",
+      "Score a track (CSV from `pulsetrack track`) against a simulated recording's ground truth.");
   cmd->add_option("--recording", args->recording, "Simulated recording folder")->required();
-  cmd->add_option("--track", args->track, "Track CSV: frame,t,id,xl,yl,xr,yr,x,y,z,ncc,nmi,status")->required();
-  cmd->add_option("--outlier-mm", args->threshold, "Error above which an ok row counts as an outlier")
+  cmd->add_option("--track", args->track, "Track CSV: frame,t,id,xl,yl,xr,yr,x,y,z,ncc,nmi,status")
+      ->required();
+  cmd->add_option("--outlier-mm", args->threshold,
+                  "Error above which an ok row counts as an outlier")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
   cmd->add_option("--out", args->out, "Write per-row errors (CSV)");

@@ -28,6 +28,7 @@ inline constexpr const char* kTrackCsvHeader = "frame,t,id,xl,yl,xr,yr,x,y,z,ncc
 
 // Fails naming file:line on a wrong header, a short row or a value that is not a number.
 vision::Result<std::vector<TrackRow>> readTrackCsv(const std::filesystem::path& path);
-vision::Result<void> writeTrackCsv(const std::filesystem::path& path, const std::vector<TrackRow>& rows);
+vision::Result<void> writeTrackCsv(const std::filesystem::path& path,
+                                   const std::vector<TrackRow>& rows);
 
 }  // namespace pulsetrack::record

@@ -47,7 +47,8 @@ struct Evaluation {
   std::vector<RowError> rows;
 };
 
-vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim, const std::vector<record::TrackRow>& rows,
+vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim,
+                                         const std::vector<record::TrackRow>& rows,
                                          double outlier_threshold_mm = 0.5);
 
 }  // namespace pulsetrack::sim

@@ -37,14 +37,14 @@ struct PlateSpec {
   int registration_acquisitions = 10;  // static protocol: the registration set (section 4.B)
   int sets = 4;
   int acquisitions_per_set = 10;
-  int frames_per_acquisition = 50;     // dynamic: 5 s at 10 fps (Table I)
+  int frames_per_acquisition = 50;  // dynamic: 5 s at 10 fps (Table I)
   std::vector<double> set_depths_mm = {410.0, 440.0, 470.0, 500.0};
   double depth_spread_mm = 12.0;
-  double lateral_range_mm = 25.0;      // +- in x and y (workspace 50 x 50 x 100 mm)
-  double max_tilt_deg = 30.0;          // about x and y (60 deg range); any angle about z
+  double lateral_range_mm = 25.0;  // +- in x and y (workspace 50 x 50 x 100 mm)
+  double max_tilt_deg = 30.0;      // about x and y (60 deg range); any angle about z
   double max_speed_mm_s = 25.0;
   double max_angular_speed_deg_s = 9.7;
-  double tracker_noise_mm = 0.1;       // RMS on the divots' positions
+  double tracker_noise_mm = 0.1;  // RMS on the divots' positions
   double texture_px_per_mm = 20.0;
 };
 
@@ -53,9 +53,9 @@ struct PlateSample {
   int set = 0;          // 0: registration set (static protocol), 1..sets: test sets
   int acquisition = 0;  // within the set
   int frame_in_acquisition = 0;
-  double t = 0.0;       // s
-  Pose c_t_p;           // true plate pose in the rig frame {C}
-  Pose o_t_m;           // the tracker's measurement of the markers' frame (with noise)
+  double t = 0.0;  // s
+  Pose c_t_p;      // true plate pose in the rig frame {C}
+  Pose o_t_m;      // the tracker's measurement of the markers' frame (with noise)
 };
 
 class PlateScene {

@@ -1,0 +1,100 @@
+// Scene files: the shipped ones load; every mistake names file:line and the key.
+
+#include "pulsetrack/sim/scene.hpp"
+
+#include <gtest/gtest.h>
+
+#include <regex>
+
+#include "pulsetrack/sim/paper_rig.hpp"
+#include "test_util.hpp"
+
+namespace pulsetrack::sim {
+namespace {
+
+std::string configDir() { return test::dataDir() + "/../../config"; }
+
+TEST(SceneFile, ShippedScenesLoad) {
+  for (const char* name : {"cortex-60s", "plate-static", "plate-dynamic"}) {
+    auto s = loadScene(configDir() + "/scenes/" + name + ".toml");
+    ASSERT_TRUE(s) << s.error().message;
+    EXPECT_EQ(s->name, name);
+    auto rig = vision::loadRig(s->rig_path);
+    ASSERT_TRUE(rig) << rig.error().message;
+  }
+  auto cortex = loadScene(configDir() + "/scenes/cortex-60s.toml");
+  ASSERT_EQ(cortex->cortex.oscillations.size(), 3U);
+  EXPECT_EQ(cortex->cortex.oscillations[1].name, "breathing");
+  EXPECT_DOUBLE_EQ(cortex->cortex.oscillations[1].frequency_hz, 0.2);
+  ASSERT_EQ(cortex->cortex.oscillations[1].harmonics.size(), 2U);
+  EXPECT_DOUBLE_EQ(cortex->cortex.oscillations[1].harmonics[1].multiple, 3.0);
+  EXPECT_NEAR(cortex->cortex.oscillations[1].harmonics[0].phase_rad, 29.0 * CV_PI / 180.0, 1e-12);
+  EXPECT_TRUE(cortex->cortex.sag.enabled);
+  EXPECT_TRUE(cortex->cortex.instrument.enabled);
+  EXPECT_EQ(cortex->frames, 600);
+  auto dynamic = loadScene(configDir() + "/scenes/plate-dynamic.toml");
+  EXPECT_EQ(dynamic->plate.protocol, PlateProtocol::kDynamic);
+}
+
+TEST(SceneFile, PaperRigYamlIsThePaperRig) {
+  auto rig = vision::loadRig(configDir() + "/rigs/paper-rig.yaml");
+  ASSERT_TRUE(rig) << rig.error().message;
+  const vision::StereoRig ref = paperRig();
+  EXPECT_LT(cv::norm(rig->left.k() - ref.left.k()), 1e-9);
+  EXPECT_LT(cv::norm(rig->r - ref.r), 1e-12);
+  EXPECT_LT(cv::norm(rig->t - ref.t), 1e-9);
+  EXPECT_EQ(rig->left.imageSize(), cv::Size(1360, 1024));
+  EXPECT_NEAR(rig->left.fx(), 25.0 / 4.65e-3, 5.0);  // 25 mm lens, 4.65 um pixels
+  EXPECT_NEAR(rig->baseline(), 60.0, 0.1);
+  // Both views see the whole of a 55 mm craniotomy centred on the left axis from 40 to 50 cm.
+  for (double z : {400.0, 450.0, 500.0}) {
+    for (int k = 0; k < 36; ++k) {
+      const double a = k * CV_PI / 18;
+      const cv::Vec3d p(27.5 * std::cos(a), 27.5 * std::sin(a), z);
+      for (const cv::Vec2d& px : {rig->projectLeft(p), rig->projectRight(p)}) {
+        EXPECT_GT(px[0], 0.0);
+        EXPECT_GT(px[1], 0.0);
+        EXPECT_LT(px[0], 1359.0);
+        EXPECT_LT(px[1], 1023.0);
+      }
+    }
+  }
+}
+
+void expectError(const std::string& text, const std::string& pattern) {
+  auto s = parseScene(text, "/x/scene.toml");
+  ASSERT_FALSE(s) << "accepted:\n" << text;
+  EXPECT_TRUE(std::regex_search(s.error().message, std::regex(pattern)))
+      << "message: " << s.error().message << "\nexpected: " << pattern;
+}
+
+const std::string kHead = "kind = \"cortex\"\nrig = \"r.yaml\"\n";
+
+TEST(SceneFile, MistakesNameFileLineAndKey) {
+  expectError("rig = \"r.yaml\"\n", "scene.toml: key 'kind' is missing");
+  expectError("kind = \"cortex\"\n", "scene.toml: key 'rig' is missing");
+  expectError("kind = \"brain\"\nrig = \"r\"\n", "scene.toml:1: kind: expected one of cortex, plate");
+  expectError(kHead + "fps = \"ten\"\n", "scene.toml:3: fps: expected a number");
+  expectError(kHead + "fps = 0.0\n", "scene.toml:3: fps: expected a number in \\[0.1, 1000\\], got 0.0");
+  expectError(kHead + "frames = 2.5\n", "scene.toml:3: frames: expected an integer");
+  expectError(kHead + "framez = 3\n", "scene.toml:3: unknown key 'framez'");
+  expectError(kHead + "[camera]\nnoise_sigma = -1\n", "scene.toml:4: camera.noise_sigma: expected a number in \\[0, 50\\]");
+  expectError(kHead + "[cortex]\ntilt = 3\n", "scene.toml:4: unknown key 'cortex.tilt'");
+  expectError(kHead + "[[cortex.motion]]\nname = \"b\"\ngradient = [1]\n",
+              "scene.toml:5: cortex.motion\\[0\\].gradient: expected 2 to 2 numbers");
+  expectError(kHead + "[[cortex.motion]]\nharmonics = [{ multiple = 0.5 }]\n",
+              "scene.toml:4: cortex.motion\\[0\\].harmonics\\[0\\].multiple: expected a number in \\[1, 20\\]");
+  expectError(kHead + "[cortex.sag]\nenabled = 1\n", "scene.toml:4: cortex.sag.enabled: expected true or false");
+  expectError(kHead + "cortex = 5\n", "scene.toml:3: cortex: expected a table");
+  expectError(kHead + "[plate]\nprotocol = \"wobbly\"\n", "scene.toml:4: plate.protocol: expected one of dynamic, static");
+  expectError(kHead + "fps = [\n", "scene.toml:3:");  // TOML syntax error
+}
+
+TEST(SceneFile, MissingFileIsNamed) {
+  auto s = loadScene("/nonexistent/scene.toml");
+  ASSERT_FALSE(s);
+  EXPECT_EQ(s.error().message, "/nonexistent/scene.toml: cannot open scene file");
+}
+
+}  // namespace
+}  // namespace pulsetrack::sim
