@@ -26,14 +26,16 @@ pulsetrack::sim::SceneSpec cortexScene(int supersample) {
 
 void BM_CortexFramePair(benchmark::State& state) {
   cv::setNumThreads(1);
-  pulsetrack::sim::StereoSimulator sim(cortexScene(static_cast<int>(state.range(0))), pulsetrack::sim::paperRig());
+  pulsetrack::sim::StereoSimulator sim(cortexScene(static_cast<int>(state.range(0))),
+                                       pulsetrack::sim::paperRig());
   cv::Mat left, right;
   int i = 0;
   for (auto _ : state) {
     sim.render(i++, left, right);
     benchmark::DoNotOptimize(left.data);
   }
-  state.counters["pairs_per_s"] = benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
+  state.counters["pairs_per_s"] =
+      benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
 }
 BENCHMARK(BM_CortexFramePair)->Arg(1)->Arg(2)->Arg(3)->Unit(benchmark::kMillisecond)->UseRealTime();
 
@@ -50,7 +52,8 @@ void BM_PlateFramePair(benchmark::State& state) {
     sim.render(i++ % sim.frameCount(), left, right);
     benchmark::DoNotOptimize(left.data);
   }
-  state.counters["pairs_per_s"] = benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
+  state.counters["pairs_per_s"] =
+      benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
 }
 BENCHMARK(BM_PlateFramePair)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond)->UseRealTime();
 

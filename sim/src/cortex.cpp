@@ -15,6 +15,11 @@ namespace {
 
 constexpr double kTwoPi = 2.0 * CV_PI;
 
+// Index of grid vertex (i, j) in an n x n grid stored row by row.
+size_t gridIndex(int i, int j, int n) {
+  return static_cast<size_t>(j) * static_cast<size_t>(n) + static_cast<size_t>(i);
+}
+
 cv::Matx33d rotationAbout(const cv::Vec3d& axis, double angle) {
   cv::Matx33d r;
   cv::Rodrigues(cv::normalize(axis) * angle, r);
@@ -317,10 +322,9 @@ void CortexScene::buildMeshes() {
   const double half = spec_.radius_mm + 1.0;
   grid_n_ = static_cast<int>(std::ceil(2.0 * half / h)) + 1;
   const int n = grid_n_;
-  grid_uv_.resize(static_cast<size_t>(n * n));
+  grid_uv_.resize(static_cast<size_t>(n) * static_cast<size_t>(n));
   for (int j = 0; j < n; ++j) {
-    for (int i = 0; i < n; ++i)
-      grid_uv_[static_cast<size_t>(j * n + i)] = {-half + i * h, -half + j * h};
+    for (int i = 0; i < n; ++i) grid_uv_[gridIndex(i, j, n)] = {-half + i * h, -half + j * h};
   }
   const double keep = (half + h) * (half + h);
   for (int j = 0; j + 1 < n; ++j) {
@@ -409,15 +413,14 @@ void CortexScene::render(const vision::StereoRig& rig, double t, Rasterizer& ras
   for (int j = 0; j < n; ++j) {
     for (int i = 0; i < n; ++i) {
       const auto at = [&](int ii, int jj) {
-        return world_[static_cast<size_t>(std::clamp(jj, 0, n - 1) * n + std::clamp(ii, 0, n - 1))];
+        return world_[gridIndex(std::clamp(ii, 0, n - 1), std::clamp(jj, 0, n - 1), n)];
       };
       cv::Vec3d nn = (at(i + 1, j) - at(i - 1, j)).cross(at(i, j + 1) - at(i, j - 1));
       if (nn.dot(z_s) < 0) nn = -nn;
-      const cv::Vec2f& g = bump_grad_[static_cast<size_t>(j * n + i)];
+      const cv::Vec2f& g = bump_grad_[gridIndex(i, j, n)];
       const double gu = g[0];
       const double gv = g[1];
-      normal_[static_cast<size_t>(j * n + i)] =
-          cv::normalize(cv::normalize(nn) - gu * x_s - gv * y_s);
+      normal_[gridIndex(i, j, n)] = cv::normalize(cv::normalize(nn) - gu * x_s - gv * y_s);
     }
   }
   const double illum_t =

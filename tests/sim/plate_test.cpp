@@ -17,10 +17,12 @@ TEST(Plate, NominalCoordinatesAreTheEquations) {
   // Eq. (4), columns in order 1..8; eq. (5), 1..6.
   const double dx[8] = {30, 15, 30, 15, -15, -30, -15, -30};
   const double dy[8] = {15, 30, -15, -30, 30, 15, -30, -15};
-  for (size_t i = 0; i < 8; ++i) EXPECT_EQ(nominalDivots()[i], cv::Vec3d(dx[i], dy[i], 0)) << "divot " << i + 1;
+  for (size_t i = 0; i < 8; ++i)
+    EXPECT_EQ(nominalDivots()[i], cv::Vec3d(dx[i], dy[i], 0)) << "divot " << i + 1;
   const double fx[6] = {10, 5, 0, 0, 0, 0};
   const double fy[6] = {0, 0, 10, 5, -5, -10};
-  for (size_t i = 0; i < 6; ++i) EXPECT_EQ(nominalFeatures()[i], cv::Vec3d(fx[i], fy[i], 0)) << "feature " << i + 1;
+  for (size_t i = 0; i < 6; ++i)
+    EXPECT_EQ(nominalFeatures()[i], cv::Vec3d(fx[i], fy[i], 0)) << "feature " << i + 1;
 }
 
 // Darkness-weighted centroid around `at` with a plane-fitted background.
@@ -29,8 +31,8 @@ cv::Vec2d centroid(const cv::Mat& img, const cv::Vec2d& at, int r) {
   const int y0 = static_cast<int>(std::lround(at[1]));
   cv::Mat a(0, 3, CV_64FC1), b(0, 1, CV_64FC1);
   for (int k = -r; k <= r; ++k) {
-    for (const cv::Point q : {cv::Point(x0 + k, y0 - r), cv::Point(x0 + k, y0 + r), cv::Point(x0 - r, y0 + k),
-                              cv::Point(x0 + r, y0 + k)}) {
+    for (const cv::Point q : {cv::Point(x0 + k, y0 - r), cv::Point(x0 + k, y0 + r),
+                              cv::Point(x0 - r, y0 + k), cv::Point(x0 + r, y0 + k)}) {
       const double row[3] = {1.0, static_cast<double>(q.x - x0), static_cast<double>(q.y - y0)};
       a.push_back(cv::Mat(1, 3, CV_64FC1, const_cast<double*>(row)));
       b.push_back(static_cast<double>(img.at<float>(q)));
@@ -41,7 +43,8 @@ cv::Vec2d centroid(const cv::Mat& img, const cv::Vec2d& at, int r) {
   double sw = 0, sx = 0, sy = 0;
   for (int y = y0 - r + 1; y < y0 + r; ++y) {
     for (int x = x0 - r + 1; x < x0 + r; ++x) {
-      const double bg = plane.at<double>(0) + plane.at<double>(1) * (x - x0) + plane.at<double>(2) * (y - y0);
+      const double bg =
+          plane.at<double>(0) + plane.at<double>(1) * (x - x0) + plane.at<double>(2) * (y - y0);
       const double w = std::max(0.0, bg - img.at<float>(y, x) - 1.0);
       sw += w;
       sx += w * x;
@@ -76,13 +79,14 @@ TEST(Plate, FeaturesAndDivotsRenderWhereTheEquationsPutThem) {
       }
       for (const cv::Vec3d& d : nominalDivots()) {
         const cv::Vec2d proj = project(d);
-        if (proj[0] < 40 || proj[1] < 40 || proj[0] > img.cols - 41 || proj[1] > img.rows - 41) continue;
+        if (proj[0] < 40 || proj[1] < 40 || proj[0] > img.cols - 41 || proj[1] > img.rows - 41)
+          continue;
         worst_divot = std::max(worst_divot, cv::norm(centroid(img, proj, 30) - proj));
       }
     }
   }
-  std::cout << n << " plate features: worst " << worst_feature << " px; divots: worst " << worst_divot
-            << " px from their projection\n";
+  std::cout << n << " plate features: worst " << worst_feature << " px; divots: worst "
+            << worst_divot << " px from their projection\n";
   EXPECT_LT(worst_feature, 0.05);
   EXPECT_LT(worst_divot, 0.05);
 }
@@ -92,9 +96,11 @@ TEST(Plate, StaticProtocolShape) {
   const PlateScene plate(spec, 10.0, 5);
   ASSERT_EQ(plate.samples().size(), 50U);  // 10 registration + 4 sets x 10 (Table I)
   std::vector<double> depth(5, 0.0);
-  for (const PlateSample& s : plate.samples()) depth[static_cast<size_t>(s.set)] += s.c_t_p.t[2] / 10.0;
+  for (const PlateSample& s : plate.samples())
+    depth[static_cast<size_t>(s.set)] += s.c_t_p.t[2] / 10.0;
   for (int set = 1; set <= 4; ++set) {
-    EXPECT_NEAR(depth[static_cast<size_t>(set)], spec.set_depths_mm[static_cast<size_t>(set - 1)], 8.0);
+    EXPECT_NEAR(depth[static_cast<size_t>(set)], spec.set_depths_mm[static_cast<size_t>(set - 1)],
+                8.0);
   }
   // Every plate faces the rig within the workspace's tilt.
   for (const PlateSample& s : plate.samples()) {
@@ -124,8 +130,8 @@ TEST(Plate, DynamicProtocolSpeedsSpanTheWorkspaceLimits) {
     vsum += v;
     ++n;
   }
-  std::cout << "dynamic protocol: linear speed mean " << vsum / n << " mm/s, max " << vmax << " mm/s; angular max "
-            << wmax << " deg/s\n";
+  std::cout << "dynamic protocol: linear speed mean " << vsum / n << " mm/s, max " << vmax
+            << " mm/s; angular max " << wmax << " deg/s\n";
   EXPECT_LE(vmax, 25.0 * 1.001);
   EXPECT_GE(vmax, 15.0);
   EXPECT_LE(wmax, 9.7 * 1.001);

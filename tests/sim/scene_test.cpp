@@ -73,20 +73,26 @@ const std::string kHead = "kind = \"cortex\"\nrig = \"r.yaml\"\n";
 TEST(SceneFile, MistakesNameFileLineAndKey) {
   expectError("rig = \"r.yaml\"\n", "scene.toml: key 'kind' is missing");
   expectError("kind = \"cortex\"\n", "scene.toml: key 'rig' is missing");
-  expectError("kind = \"brain\"\nrig = \"r\"\n", "scene.toml:1: kind: expected one of cortex, plate");
+  expectError("kind = \"brain\"\nrig = \"r\"\n",
+              "scene.toml:1: kind: expected one of cortex, plate");
   expectError(kHead + "fps = \"ten\"\n", "scene.toml:3: fps: expected a number");
-  expectError(kHead + "fps = 0.0\n", "scene.toml:3: fps: expected a number in \\[0.1, 1000\\], got 0.0");
+  expectError(kHead + "fps = 0.0\n",
+              "scene.toml:3: fps: expected a number in \\[0.1, 1000\\], got 0.0");
   expectError(kHead + "frames = 2.5\n", "scene.toml:3: frames: expected an integer");
   expectError(kHead + "framez = 3\n", "scene.toml:3: unknown key 'framez'");
-  expectError(kHead + "[camera]\nnoise_sigma = -1\n", "scene.toml:4: camera.noise_sigma: expected a number in \\[0, 50\\]");
+  expectError(kHead + "[camera]\nnoise_sigma = -1\n",
+              "scene.toml:4: camera.noise_sigma: expected a number in \\[0, 50\\]");
   expectError(kHead + "[cortex]\ntilt = 3\n", "scene.toml:4: unknown key 'cortex.tilt'");
   expectError(kHead + "[[cortex.motion]]\nname = \"b\"\ngradient = [1]\n",
               "scene.toml:5: cortex.motion\\[0\\].gradient: expected 2 to 2 numbers");
   expectError(kHead + "[[cortex.motion]]\nharmonics = [{ multiple = 0.5 }]\n",
-              "scene.toml:4: cortex.motion\\[0\\].harmonics\\[0\\].multiple: expected a number in \\[1, 20\\]");
-  expectError(kHead + "[cortex.sag]\nenabled = 1\n", "scene.toml:4: cortex.sag.enabled: expected true or false");
+              "scene.toml:4: cortex.motion\\[0\\].harmonics\\[0\\].multiple: expected a number in "
+              "\\[1, 20\\]");
+  expectError(kHead + "[cortex.sag]\nenabled = 1\n",
+              "scene.toml:4: cortex.sag.enabled: expected true or false");
   expectError(kHead + "cortex = 5\n", "scene.toml:3: cortex: expected a table");
-  expectError(kHead + "[plate]\nprotocol = \"wobbly\"\n", "scene.toml:4: plate.protocol: expected one of dynamic, static");
+  expectError(kHead + "[plate]\nprotocol = \"wobbly\"\n",
+              "scene.toml:4: plate.protocol: expected one of dynamic, static");
   expectError(kHead + "fps = [\n", "scene.toml:3:");  // TOML syntax error
 }
 

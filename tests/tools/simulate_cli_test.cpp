@@ -55,11 +55,13 @@ TEST(SimulateCli, CortexRecordingWithTruth) {
 
 TEST(SimulateCli, PlateRecordingHasTrackerFiles) {
   test::TempDir dir;
-  const auto r = test::run(test::cli() + " simulate -q --scene " + scenes() + "/plate-static.toml --frames 3 --out " +
-                           (dir / "rec"));
+  const auto r = test::run(test::cli() + " simulate -q --scene " + scenes() +
+                           "/plate-static.toml --frames 3 --out " + (dir / "rec"));
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  for (const char* f : {"truth/plate.csv", "truth/transforms.csv", "truth/tracker_markers.csv", "tracker/markers.csv", "tracker/divots.csv",
-                        "tracker/digitization_markers.csv", "scene.toml", "rig.yaml", "manifest.toml"}) {
+  for (const char* f :
+       {"truth/plate.csv", "truth/transforms.csv", "truth/tracker_markers.csv",
+        "tracker/markers.csv", "tracker/divots.csv", "tracker/digitization_markers.csv",
+        "scene.toml", "rig.yaml", "manifest.toml"}) {
     EXPECT_TRUE(std::filesystem::exists(dir.path() / "rec" / f)) << f;
   }
 }
@@ -67,16 +69,19 @@ TEST(SimulateCli, PlateRecordingHasTrackerFiles) {
 TEST(SimulateCli, ClearErrors) {
   test::TempDir dir;
   std::ofstream(dir / "bad.toml") << "kind = \"cortex\"\nrig = \"x.yaml\"\ntilt = 3\n";
-  auto r = test::run(test::cli() + " simulate --scene " + (dir / "bad.toml") + " --out " + (dir / "o"));
+  auto r =
+      test::run(test::cli() + " simulate --scene " + (dir / "bad.toml") + " --out " + (dir / "o"));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("bad.toml:3: unknown key 'tilt'"), std::string::npos) << r.output;
   std::ofstream(dir / "norig.toml") << "kind = \"cortex\"\nrig = \"missing.yaml\"\n";
-  r = test::run(test::cli() + " simulate --scene " + (dir / "norig.toml") + " --out " + (dir / "o"));
+  r = test::run(test::cli() + " simulate --scene " + (dir / "norig.toml") + " --out " +
+                (dir / "o"));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("missing.yaml: rig file not found"), std::string::npos) << r.output;
   std::filesystem::create_directories(dir.path() / "full");
   std::ofstream(dir / "full/x") << "x";
-  r = test::run(test::cli() + " simulate --scene " + scenes() + "/cortex-60s.toml --frames 1 --out " + (dir / "full"));
+  r = test::run(test::cli() + " simulate --scene " + scenes() +
+                "/cortex-60s.toml --frames 1 --out " + (dir / "full"));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("never overwritten"), std::string::npos) << r.output;
 }
@@ -107,10 +112,21 @@ TEST(Evaluate, ReportsTheErrorInjectedIntoATrack) {
         const cv::Vec3d p = scene.position(u, v, t);
         const cv::Vec2d l = rec->rig().projectLeft(p);
         const cv::Vec2d r = rec->rig().projectRight(p);
-        record::TrackRow row{f, t, id, l[0], l[1], r[0], r[1], p[0] + noise(rng), p[1] + noise(rng),
-                             p[2] + noise(rng), 0.95, 0.8, "ok"};
+        record::TrackRow row{f,
+                             t,
+                             id,
+                             l[0],
+                             l[1],
+                             r[0],
+                             r[1],
+                             p[0] + noise(rng),
+                             p[1] + noise(rng),
+                             p[2] + noise(rng),
+                             0.95,
+                             0.8,
+                             "ok"};
         if (f == 0) row.x = p[0], row.y = p[1], row.z = p[2];  // exact where identity is taken
-        if (id == 3 && f == 12) row.z += 1.0;                   // one outlier
+        if (id == 3 && f == 12) row.z += 1.0;                  // one outlier
         if (id == 5 && f >= 20) row.status = "occluded";
         rows.push_back(row);
       }
@@ -129,18 +145,22 @@ TEST(Evaluate, ReportsTheErrorInjectedIntoATrack) {
   EXPECT_NEAR(ev->median_mm, 0.05 * 1.538, 0.01);
   // And through the CLI.
   ASSERT_TRUE(record::writeTrackCsv(dir / "track.csv", rows));
-  const auto r = test::run(test::cli() + " evaluate --recording " + out + " --track " + (dir / "track.csv") +
-                           " --out " + (dir / "errors.csv"));
+  const auto r = test::run(test::cli() + " evaluate --recording " + out + " --track " +
+                           (dir / "track.csv") + " --out " + (dir / "errors.csv"));
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  EXPECT_NE(r.output.find("features              25 (0 without ground truth)"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("features              25 (0 without ground truth)"), std::string::npos)
+      << r.output;
   EXPECT_NE(r.output.find("outliers > 0.50 mm    1"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("rows not ok           10 (occluded 10)"), std::string::npos) << r.output;
   EXPECT_TRUE(std::filesystem::exists(dir.path() / "errors.csv"));
   // A bad track file is named with its line.
-  std::ofstream(dir / "bad.csv") << record::kTrackCsvHeader << "\n0,0.0,1,2,3,4,5,6,7,x,0.9,0.8,ok\n";
-  const auto bad = test::run(test::cli() + " evaluate --recording " + out + " --track " + (dir / "bad.csv"));
+  std::ofstream(dir / "bad.csv") << record::kTrackCsvHeader
+                                 << "\n0,0.0,1,2,3,4,5,6,7,x,0.9,0.8,ok\n";
+  const auto bad =
+      test::run(test::cli() + " evaluate --recording " + out + " --track " + (dir / "bad.csv"));
   EXPECT_EQ(bad.exit_code, 1);
-  EXPECT_NE(bad.output.find("bad.csv:2: field 'z' is not a number: 'x'"), std::string::npos) << bad.output;
+  EXPECT_NE(bad.output.find("bad.csv:2: field 'z' is not a number: 'x'"), std::string::npos)
+      << bad.output;
 }
 
 }  // namespace
