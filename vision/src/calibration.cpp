@@ -113,9 +113,14 @@ Detection CalibrationTarget::detect(const cv::Mat& grey) const {
   if (spec_.kind == PatternKind::kChessboard) {
     const cv::Size size(spec_.cols, spec_.rows);
     std::vector<cv::Point2f> corners;
-    bool found = cv::findChessboardCornersSB(
-        grey, size, corners,
-        cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_EXHAUSTIVE | cv::CALIB_CB_ACCURACY);
+    // CALIB_CB_ACCURACY alone first: adding CALIB_CB_NORMALIZE_IMAGE raised the OpenCV sample
+    // pairs' mono RMS from 0.234 to 0.256 px. The normalizing, exhaustive search is the fallback.
+    bool found = cv::findChessboardCornersSB(grey, size, corners, cv::CALIB_CB_ACCURACY);
+    if (!found) {
+      found = cv::findChessboardCornersSB(
+          grey, size, corners,
+          cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_EXHAUSTIVE | cv::CALIB_CB_ACCURACY);
+    }
     if (!found) {
       // The classic detector copes with some blur the sector-based one rejects.
       found = cv::findChessboardCorners(
