@@ -58,7 +58,8 @@ TEST(ChessboardCalibration, OpenCvSamplePairsMeetTheAcceptanceFigures) {
   EXPECT_LE(result->stereo_rms, 0.30);
   EXPECT_LE(result->epipolar_sample_px, 0.30);
   EXPECT_GE(result->views_used, 12);
-  EXPECT_LE(result->left_rms, 0.24);  // findChessboardCornersSB(CALIB_CB_ACCURACY) + calibrateCamera: 0.234
+  EXPECT_LE(result->left_rms,
+            0.24);  // findChessboardCornersSB(CALIB_CB_ACCURACY) + calibrateCamera: 0.234
   EXPECT_LE(result->right_rms, 0.24);
   // The sample rig: two webcams about 3.3 squares apart, side by side.
   EXPECT_GT(result->rig.baseline(), 2.5);

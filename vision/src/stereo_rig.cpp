@@ -47,12 +47,12 @@ cv::Vec3d midpoint(const Ray& a, const Ray& b) noexcept {
   const cv::Matx33d a2 = i - b.direction * b.direction.t();
   const cv::Matx33d m = a1 + a2;
   const cv::Vec3d c = a1 * a.origin + a2 * b.origin;
-  cv::Vec3d x;
-  if (!cv::solve(m, c, x, cv::DECOMP_LU)) {
+  // Matx arithmetic stays on the stack: this runs per feature and frame.
+  if (std::abs(cv::determinant(m)) < 1e-12) {
     const double nan = std::numeric_limits<double>::quiet_NaN();
     return {nan, nan, nan};
   }
-  return x;
+  return cv::Vec3d(m.solve(cv::Matx31d(c[0], c[1], c[2]), cv::DECOMP_LU).val);
 }
 
 namespace {

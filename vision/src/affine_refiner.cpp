@@ -1,0 +1,155 @@
+#include "pulsetrack/vision/affine_refiner.hpp"
+
+#include <cmath>
+#include <opencv2/core.hpp>  // Matx::solve / inv (operations.hpp)
+
+namespace pulsetrack::vision {
+
+bool sampleBilinear(const uint8_t* image, size_t stride, int width, int height, double x, double y,
+                    float& out) noexcept {
+  if (!(x >= 0.0) || !(y >= 0.0) || x >= width - 1 || y >= height - 1) return false;
+  const int x0 = static_cast<int>(x);
+  const int y0 = static_cast<int>(y);
+  const auto fx = static_cast<float>(x - x0);
+  const auto fy = static_cast<float>(y - y0);
+  const uint8_t* r0 = image + static_cast<size_t>(y0) * stride + static_cast<size_t>(x0);
+  const uint8_t* r1 = r0 + stride;
+  const float top = static_cast<float>(r0[0]) + fx * static_cast<float>(r0[1] - r0[0]);
+  const float bottom = static_cast<float>(r1[0]) + fx * static_cast<float>(r1[1] - r1[0]);
+  out = top + fy * (bottom - top);
+  return true;
+}
+
+bool sampleBicubic(const uint8_t* image, size_t stride, int width, int height, double x, double y,
+                   float& out) noexcept {
+  if (!(x >= 1.0) || !(y >= 1.0) || x >= width - 2 || y >= height - 2) return false;
+  const int x0 = static_cast<int>(x);
+  const int y0 = static_cast<int>(y);
+  const auto weights = [](double t, float w[4]) {
+    // Catmull-Rom (Keys, a = -0.5).
+    const double t2 = t * t, t3 = t2 * t;
+    w[0] = static_cast<float>(-0.5 * t3 + t2 - 0.5 * t);
+    w[1] = static_cast<float>(1.5 * t3 - 2.5 * t2 + 1.0);
+    w[2] = static_cast<float>(-1.5 * t3 + 2.0 * t2 + 0.5 * t);
+    w[3] = static_cast<float>(0.5 * t3 - 0.5 * t2);
+  };
+  float wx[4], wy[4];
+  weights(x - x0, wx);
+  weights(y - y0, wy);
+  const uint8_t* p = image + static_cast<size_t>(y0 - 1) * stride + static_cast<size_t>(x0 - 1);
+  float acc = 0.0F;
+  for (int j = 0; j < 4; ++j, p += stride) {
+    acc += wy[j] * (wx[0] * p[0] + wx[1] * p[1] + wx[2] * p[2] + wx[3] * p[3]);
+  }
+  out = acc;
+  return true;
+}
+
+namespace {
+
+// Samples the warped patch (bicubic: bilinear sampling is biased by up to 0.04 px on
+// textures of a few pixels' scale, see tests/vision/affine_refiner_test.cpp); false when it
+// leaves the image.
+bool warpPatch(const uint8_t* image, size_t stride, int width, int height, const AffineWarp& w,
+               std::array<float, kAffinePixels>& out) noexcept {
+  int k = 0;
+  for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
+    for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
+      const double u = w.centre[0] + w.a(0, 0) * x + w.a(0, 1) * y;
+      const double v = w.centre[1] + w.a(1, 0) * x + w.a(1, 1) * y;
+      if (!sampleBicubic(image, stride, width, height, u, v, out[static_cast<size_t>(k)])) return false;
+    }
+  }
+  return true;
+}
+
+void meanSpread(const std::array<float, kAffinePixels>& p, double& mean, double& spread) noexcept {
+  double s = 0, s2 = 0;
+  for (float v : p) {
+    s += v;
+    s2 += static_cast<double>(v) * v;
+  }
+  mean = s / kAffinePixels;
+  spread = std::sqrt(std::max(0.0, s2 / kAffinePixels - mean * mean));
+}
+
+}  // namespace
+
+bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int height, const AffineWarp& warp) noexcept {
+  if (!warpPatch(image, stride, width, height, warp, t_)) return false;
+  meanSpread(t_, mean_, spread_);
+  if (spread_ < 1.0) return false;
+  // Gradients of the template by central differences on a one-pixel-larger warped patch.
+  cv::Matx<double, 6, 6> h = cv::Matx<double, 6, 6>::zeros();
+  int k = 0;
+  for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
+    for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
+      float xp = 0, xm = 0, yp = 0, ym = 0;
+      const auto at = [&](double dx, double dy, float& o) {
+        const double u = warp.centre[0] + warp.a(0, 0) * (x + dx) + warp.a(0, 1) * (y + dy);
+        const double v = warp.centre[1] + warp.a(1, 0) * (x + dx) + warp.a(1, 1) * (y + dy);
+        return sampleBicubic(image, stride, width, height, u, v, o);
+      };
+      if (!at(1, 0, xp) || !at(-1, 0, xm) || !at(0, 1, yp) || !at(0, -1, ym)) return false;
+      const double gx = 0.5 * (xp - xm);
+      const double gy = 0.5 * (yp - ym);
+      // d(warp)/d(params) at identity, params = (da00, da10, da01, da11, dtx, dty).
+      const double sd[6] = {gx * x, gy * x, gx * y, gy * y, gx, gy};
+      auto& row = sd_[static_cast<size_t>(k)];
+      for (int i = 0; i < 6; ++i) {
+        row[static_cast<size_t>(i)] = static_cast<float>(sd[i]);
+        for (int j = 0; j < 6; ++j) h(i, j) += sd[i] * sd[j];
+      }
+    }
+  }
+  bool ok = false;
+  h_inv_ = h.inv(cv::DECOMP_CHOLESKY, &ok);
+  return ok;
+}
+
+AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int width, int height,
+                                    const AffineWarp& start, int max_iterations, double epsilon_px) const noexcept {
+  AffineResult res;
+  res.warp = start;
+  std::array<float, kAffinePixels> patch{};
+  for (int it = 0; it < max_iterations; ++it) {
+    res.iterations = it + 1;
+    if (!warpPatch(image, stride, width, height, res.warp, patch)) return res;
+    double mean = 0, spread = 0;
+    meanSpread(patch, mean, spread);
+    if (spread < 1e-6) return res;
+    const double gain = spread_ / spread;
+    cv::Vec<double, 6> b = cv::Vec<double, 6>::all(0.0);
+    double sse = 0.0;
+    for (size_t k = 0; k < static_cast<size_t>(kAffinePixels); ++k) {
+      const double e = (patch[k] - mean) * gain + mean_ - t_[k];
+      sse += e * e;
+      for (size_t i = 0; i < 6; ++i) b[static_cast<int>(i)] += sd_[k][i] * e;
+    }
+    res.rms = std::sqrt(sse / kAffinePixels);
+    const cv::Vec<double, 6> dp = h_inv_ * b;
+    // Inverse composition: W <- W o W(dp)^-1, with W(dp) = [I + D | t].
+    const cv::Matx22d d(1.0 + dp[0], dp[2], dp[1], 1.0 + dp[3]);
+    const cv::Matx22d d_inv = d.inv();
+    const cv::Vec2d t(dp[4], dp[5]);
+    const cv::Matx22d a_new = res.warp.a * d_inv;
+    const cv::Vec2d c_new = res.warp.centre - a_new * t;
+    // Largest movement of a patch corner.
+    double move = 0.0;
+    for (const cv::Vec2d& corner : {cv::Vec2d(-kAffineHalf, -kAffineHalf), cv::Vec2d(kAffineHalf, -kAffineHalf),
+                                   cv::Vec2d(-kAffineHalf, kAffineHalf), cv::Vec2d(kAffineHalf, kAffineHalf)}) {
+      const cv::Vec2d before = res.warp.centre + res.warp.a * corner;
+      const cv::Vec2d after = c_new + a_new * corner;
+      move = std::max(move, cv::norm(after - before));
+    }
+    res.warp.a = a_new;
+    res.warp.centre = c_new;
+    if (move < epsilon_px) {
+      res.converged = true;
+      break;
+    }
+  }
+  return res;
+}
+
+}  // namespace pulsetrack::vision
