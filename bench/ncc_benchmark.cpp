@@ -16,8 +16,6 @@
 
 namespace {
 
-using pulsetrack::vision::kTemplatePad;
-
 constexpr int kHalf = 7;    // 15x15
 constexpr int kSearch = 8;  // +-8 px
 constexpr int kSide = 2 * kSearch + 1;
@@ -71,12 +69,16 @@ void BM_OurNcc(benchmark::State& state) {
         const cv::Point& p = f.points[c][i];
         const uint8_t* region = f.next[c].ptr(p.y - kHalf - kSearch, p.x - kHalf - kSearch);
         if constexpr (kSimd) {
-          pulsetrack::vision::nccScores(f.templates[c][i], region, f.next[c].step, kSide, kSide, scores);
+          pulsetrack::vision::nccScores(f.templates[c][i], region, f.next[c].step, kSide, kSide,
+                                        scores);
         } else {
-          pulsetrack::vision::nccScoresScalar(f.templates[c][i], region, f.next[c].step, kSide, kSide, scores);
+          pulsetrack::vision::nccScoresScalar(f.templates[c][i], region, f.next[c].step, kSide,
+                                              kSide, scores);
         }
-        const int best = static_cast<int>(std::max_element(scores, scores + kSide * kSide) - scores);
-        const int bx = std::clamp(best % kSide, 1, kSide - 2), by = std::clamp(best / kSide, 1, kSide - 2);
+        const int best =
+            static_cast<int>(std::max_element(scores, scores + kSide * kSide) - scores);
+        const int bx = std::clamp(best % kSide, 1, kSide - 2),
+                  by = std::clamp(best / kSide, 1, kSide - 2);
         float n3[9];
         for (int j = 0; j < 3; ++j) {
           for (int k = 0; k < 3; ++k) n3[j * 3 + k] = scores[(by - 1 + j) * kSide + bx - 1 + k];
@@ -85,10 +87,15 @@ void BM_OurNcc(benchmark::State& state) {
       }
     }
   }
-  state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(f.points[0].size() + f.points[1].size()));
+  state.SetItemsProcessed(state.iterations() *
+                          static_cast<int64_t>(f.points[0].size() + f.points[1].size()));
 }
-BENCHMARK_TEMPLATE(BM_OurNcc, true)->Name("ours_simd_ncc_exhaustive")->Unit(benchmark::kMicrosecond);
-BENCHMARK_TEMPLATE(BM_OurNcc, false)->Name("ours_scalar_ncc_exhaustive")->Unit(benchmark::kMicrosecond);
+BENCHMARK_TEMPLATE(BM_OurNcc, true)
+    ->Name("ours_simd_ncc_exhaustive")
+    ->Unit(benchmark::kMicrosecond);
+BENCHMARK_TEMPLATE(BM_OurNcc, false)
+    ->Name("ours_scalar_ncc_exhaustive")
+    ->Unit(benchmark::kMicrosecond);
 
 void BM_MatchTemplate(benchmark::State& state) {
   Fixture& f = fixture();
@@ -97,7 +104,8 @@ void BM_MatchTemplate(benchmark::State& state) {
     for (int c = 0; c < 2; ++c) {
       for (size_t i = 0; i < f.points[c].size(); ++i) {
         const cv::Point& p = f.points[c][i];
-        const cv::Mat window = f.next[c](cv::Rect(p.x - kHalf - kSearch, p.y - kHalf - kSearch, 15 + 2 * kSearch, 15 + 2 * kSearch));
+        const cv::Mat window = f.next[c](cv::Rect(p.x - kHalf - kSearch, p.y - kHalf - kSearch,
+                                                  15 + 2 * kSearch, 15 + 2 * kSearch));
         cv::matchTemplate(window, f.cv_templates[c][i], result, cv::TM_CCOEFF_NORMED);
         double mx = 0;
         cv::Point loc;
@@ -106,7 +114,8 @@ void BM_MatchTemplate(benchmark::State& state) {
       }
     }
   }
-  state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(f.points[0].size() + f.points[1].size()));
+  state.SetItemsProcessed(state.iterations() *
+                          static_cast<int64_t>(f.points[0].size() + f.points[1].size()));
 }
 BENCHMARK(BM_MatchTemplate)->Name("opencv_matchTemplate_minMaxLoc")->Unit(benchmark::kMicrosecond);
 
@@ -114,7 +123,8 @@ void BM_Klt(benchmark::State& state) {
   Fixture& f = fixture();
   std::vector<cv::Point2f> from[2], to[2];
   for (int c = 0; c < 2; ++c) {
-    for (const auto& p : f.points[c]) from[c].emplace_back(static_cast<float>(p.x), static_cast<float>(p.y));
+    for (const auto& p : f.points[c])
+      from[c].emplace_back(static_cast<float>(p.x), static_cast<float>(p.y));
   }
   std::vector<uchar> st;
   std::vector<float> err;
@@ -124,7 +134,8 @@ void BM_Klt(benchmark::State& state) {
       benchmark::DoNotOptimize(to[c].data());
     }
   }
-  state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(from[0].size() + from[1].size()));
+  state.SetItemsProcessed(state.iterations() *
+                          static_cast<int64_t>(from[0].size() + from[1].size()));
 }
 BENCHMARK(BM_Klt)->Name("opencv_calcOpticalFlowPyrLK")->Unit(benchmark::kMicrosecond);
 
@@ -141,9 +152,10 @@ class RatioReporter : public benchmark::ConsoleReporter {
     if (simd <= 0) return;
     std::cout << "\nNCC kernel target: " << pulsetrack::vision::nccTarget() << "\n";
     std::cout << "per frame pair (100 features x 2 cameras, 15x15, +-8 px):\n";
-    for (const char* n : {"ours_simd_ncc_exhaustive", "ours_scalar_ncc_exhaustive", "opencv_matchTemplate_minMaxLoc",
-                          "opencv_calcOpticalFlowPyrLK"}) {
-      if (get(n) > 0) std::cout << "  " << n << ": " << get(n) << " us, " << get(n) / simd << "x ours (SIMD)\n";
+    for (const char* n : {"ours_simd_ncc_exhaustive", "ours_scalar_ncc_exhaustive",
+                          "opencv_matchTemplate_minMaxLoc", "opencv_calcOpticalFlowPyrLK"}) {
+      if (get(n) > 0)
+        std::cout << "  " << n << ": " << get(n) << " us, " << get(n) / simd << "x ours (SIMD)\n";
     }
   }
 

@@ -23,8 +23,8 @@ struct Texture {
     for (int i = 0; i < 40; ++i) {
       const double lambda = 5.0 + 15.0 * u(rng);
       const double dir = 2.0 * CV_PI * u(rng);
-      waves.emplace_back(2 * CV_PI / lambda * std::cos(dir), 2 * CV_PI / lambda * std::sin(dir), 2 * CV_PI * u(rng),
-                         12.0 * u(rng));
+      waves.emplace_back(2 * CV_PI / lambda * std::cos(dir), 2 * CV_PI / lambda * std::sin(dir),
+                         2 * CV_PI * u(rng), 12.0 * u(rng));
     }
   }
   [[nodiscard]] double at(double x, double y) const {
@@ -58,12 +58,14 @@ TEST(AffineRefiner, RecoversAKnownWarpThroughGainAndBias) {
     ASSERT_TRUE(t.set(src8.data, src8.step, src8.cols, src8.rows, at_rest));
     // The moved image: the patch at rest maps to centre + M x in the new image.
     const double angle = 0.08 * u(rng), scale = 1.0 + 0.05 * u(rng), shear = 0.04 * u(rng);
-    const cv::Matx22d m = cv::Matx22d(std::cos(angle), -std::sin(angle), std::sin(angle), std::cos(angle)) *
-                          cv::Matx22d(scale, shear, 0.0, scale);
+    const cv::Matx22d m =
+        cv::Matx22d(std::cos(angle), -std::sin(angle), std::sin(angle), std::cos(angle)) *
+        cv::Matx22d(scale, shear, 0.0, scale);
     const cv::Vec2d centre(103.0 + 2.0 * u(rng), 98.0 + 2.0 * u(rng));
     const cv::Matx22d mi = m.inv();
     // A shadow too: gain and bias.
-    const cv::Mat moved8 = tex.image([&](const cv::Vec2d& p) { return cv::Vec2d(100, 100) + mi * (p - centre); }, 0.7, 25.0);
+    const cv::Mat moved8 = tex.image(
+        [&](const cv::Vec2d& p) { return cv::Vec2d(100, 100) + mi * (p - centre); }, 0.7, 25.0);
     const AffineWarp start{{std::round(centre[0]), std::round(centre[1])}, cv::Matx22d::eye()};
     const AffineResult r = t.refine(moved8.data, moved8.step, moved8.cols, moved8.rows, start);
     ASSERT_TRUE(r.converged) << trial;
@@ -75,8 +77,8 @@ TEST(AffineRefiner, RecoversAKnownWarpThroughGainAndBias) {
     EXPECT_LT(r.rms, 1.5);
   }
   const double rms = std::sqrt(sum2 / 30.0);
-  std::cout << "affine refinement, 30 warped 8-bit patches: centre error RMS " << rms << " px, worst " << worst
-            << " px\n";
+  std::cout << "affine refinement, 30 warped 8-bit patches: centre error RMS " << rms
+            << " px, worst " << worst << " px\n";
   EXPECT_LT(rms, 0.012);
 }
 
@@ -87,7 +89,8 @@ TEST(AffineRefiner, RefusesFlatPatchesAndTheBorder) {
   const cv::Mat img = Texture(1).image([](const cv::Vec2d& p) { return p; });
   EXPECT_FALSE(t.set(img.data, img.step, img.cols, img.rows, {{5.0, 100.0}, cv::Matx22d::eye()}));
   ASSERT_TRUE(t.set(img.data, img.step, img.cols, img.rows, {{100.0, 100.0}, cv::Matx22d::eye()}));
-  const AffineResult r = t.refine(img.data, img.step, img.cols, img.rows, {{3.0, 100.0}, cv::Matx22d::eye()});
+  const AffineResult r =
+      t.refine(img.data, img.step, img.cols, img.rows, {{3.0, 100.0}, cv::Matx22d::eye()});
   EXPECT_FALSE(r.converged);
 }
 

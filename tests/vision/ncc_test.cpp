@@ -4,11 +4,11 @@
 #include "pulsetrack/vision/ncc.hpp"
 
 #include <gtest/gtest.h>
+#include <hwy/targets.h>
 
 #include <iostream>
 #include <opencv2/imgproc.hpp>
 #include <random>
-#include <hwy/targets.h>
 
 namespace pulsetrack::vision {
 namespace {
@@ -40,7 +40,8 @@ TEST(Ncc, SimdEqualsScalarBitForBitOnEveryTarget) {
 }
 
 void expectSimdEqualsScalar() {
-  for (const cv::Size& tsize : {cv::Size(15, 15), cv::Size(7, 7), cv::Size(31, 31), cv::Size(9, 13), cv::Size(16, 5)}) {
+  for (const cv::Size& tsize :
+       {cv::Size(15, 15), cv::Size(7, 7), cv::Size(31, 31), cv::Size(9, 13), cv::Size(16, 5)}) {
     for (unsigned seed = 1; seed <= 3; ++seed) {
       const cv::Mat img = texture({120, 100}, seed);
       NccTemplate t;
@@ -52,7 +53,8 @@ void expectSimdEqualsScalar() {
       std::vector<float> simd(nx * ny), scalar(nx * ny);
       nccScores(t, region.data, region.step, nx, ny, simd.data());
       nccScoresScalar(t, region.data, region.step, nx, ny, scalar.data());
-      for (int i = 0; i < nx * ny; ++i) ASSERT_EQ(simd[i], scalar[i]) << tsize << " seed " << seed << " at " << i;
+      for (int i = 0; i < nx * ny; ++i)
+        ASSERT_EQ(simd[i], scalar[i]) << tsize << " seed " << seed << " at " << i;
     }
   }
 }
@@ -69,7 +71,8 @@ TEST(Ncc, AgreesWithMatchTemplate) {
   std::vector<float> ours(nx * ny);
   nccScores(t, region.data, region.step, nx, ny, ours.data());
   for (int y = 0; y < ny; ++y) {
-    for (int x = 0; x < nx; ++x) EXPECT_NEAR(ours[y * nx + x], ref.at<float>(y, x), 1e-5) << x << "," << y;
+    for (int x = 0; x < nx; ++x)
+      EXPECT_NEAR(ours[y * nx + x], ref.at<float>(y, x), 1e-5) << x << "," << y;
   }
   EXPECT_FLOAT_EQ(ours[8 * nx + 8], 1.0F);  // the template's own place
 }
@@ -101,7 +104,8 @@ TEST(QuadraticPeak, RecoversTheApexOfAQuadratic) {
     for (int j = -1; j <= 1; ++j) {
       for (int i = -1; i <= 1; ++i) {
         const double dx = i - apex[0], dy = j - apex[1];
-        s[(j + 1) * 3 + i + 1] = static_cast<float>(0.9 - 0.2 * dx * dx - 0.05 * dx * dy - 0.15 * dy * dy);
+        s[(j + 1) * 3 + i + 1] =
+            static_cast<float>(0.9 - 0.2 * dx * dx - 0.05 * dx * dy - 0.15 * dy * dy);
       }
     }
     const SubPixel p = quadraticPeak(s);

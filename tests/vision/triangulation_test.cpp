@@ -51,8 +51,9 @@ TEST(Triangulation, LevenbergMarquardtMinimizesReprojectionAndIsNoWorseIn3D) {
     mid_reproj += reproj(m);
     lm_reproj += reproj(t.point);
   }
-  std::cout << "0.1 px noise: 3D RMS error midpoint " << std::sqrt(mid2 / n) << " mm, LM " << std::sqrt(lm2 / n)
-            << " mm; mean reprojection sum midpoint " << mid_reproj / n << " px, LM " << lm_reproj / n << " px\n";
+  std::cout << "0.1 px noise: 3D RMS error midpoint " << std::sqrt(mid2 / n) << " mm, LM "
+            << std::sqrt(lm2 / n) << " mm; mean reprojection sum midpoint " << mid_reproj / n
+            << " px, LM " << lm_reproj / n << " px\n";
   EXPECT_LT(lm_reproj, mid_reproj);
   EXPECT_LE(std::sqrt(lm2 / n), std::sqrt(mid2 / n) * 1.0001);
   // The physical limit the design notes give: ~0.01-0.02 mm in depth per 0.03-0.05 px; 0.1 px
@@ -64,7 +65,8 @@ TEST(Triangulation, ParallelRaysFail) {
   StereoRig rig = sim::paperRig();
   rig.r = cv::Matx33d::eye();
   // The same pixel in both cameras of a parallel rig: rays parallel, point at infinity.
-  const Triangulation t = triangulate(rig, {rig.left.cx(), rig.left.cy()}, {rig.right.cx(), rig.right.cy()});
+  const Triangulation t =
+      triangulate(rig, {rig.left.cx(), rig.left.cy()}, {rig.right.cx(), rig.right.cy()});
   if (t.ok) {
     EXPECT_GT(cv::norm(t.point), 1e5);
   }

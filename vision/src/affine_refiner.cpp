@@ -57,7 +57,8 @@ bool warpPatch(const uint8_t* image, size_t stride, int width, int height, const
     for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
       const double u = w.centre[0] + w.a(0, 0) * x + w.a(0, 1) * y;
       const double v = w.centre[1] + w.a(1, 0) * x + w.a(1, 1) * y;
-      if (!sampleBicubic(image, stride, width, height, u, v, out[static_cast<size_t>(k)])) return false;
+      if (!sampleBicubic(image, stride, width, height, u, v, out[static_cast<size_t>(k)]))
+        return false;
     }
   }
   return true;
@@ -75,7 +76,8 @@ void meanSpread(const std::array<float, kAffinePixels>& p, double& mean, double&
 
 }  // namespace
 
-bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int height, const AffineWarp& warp) noexcept {
+bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int height,
+                         const AffineWarp& warp) noexcept {
   if (!warpPatch(image, stride, width, height, warp, t_)) return false;
   meanSpread(t_, mean_, spread_);
   if (spread_ < 1.0) return false;
@@ -104,11 +106,15 @@ bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int hei
   }
   bool ok = false;
   h_inv_ = h.inv(cv::DECOMP_CHOLESKY, &ok);
-  return ok;
+  bool ok_t = false;
+  h_inv_translation_ =
+      cv::Matx22d(h(4, 4), h(4, 5), h(5, 4), h(5, 5)).inv(cv::DECOMP_CHOLESKY, &ok_t);
+  return ok && ok_t;
 }
 
 AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int width, int height,
-                                    const AffineWarp& start, int max_iterations, double epsilon_px) const noexcept {
+                                    const AffineWarp& start, int max_iterations, double epsilon_px,
+                                    bool translation_only) const noexcept {
   AffineResult res;
   res.warp = start;
   std::array<float, kAffinePixels> patch{};
@@ -127,7 +133,14 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
       for (size_t i = 0; i < 6; ++i) b[static_cast<int>(i)] += sd_[k][i] * e;
     }
     res.rms = std::sqrt(sse / kAffinePixels);
-    const cv::Vec<double, 6> dp = h_inv_ * b;
+    cv::Vec<double, 6> dp = cv::Vec<double, 6>::all(0.0);
+    if (translation_only) {
+      const cv::Vec2d t2 = h_inv_translation_ * cv::Vec2d(b[4], b[5]);
+      dp[4] = t2[0];
+      dp[5] = t2[1];
+    } else {
+      dp = h_inv_ * b;
+    }
     // Inverse composition: W <- W o W(dp)^-1, with W(dp) = [I + D | t].
     const cv::Matx22d d(1.0 + dp[0], dp[2], dp[1], 1.0 + dp[3]);
     const cv::Matx22d d_inv = d.inv();
@@ -136,8 +149,9 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
     const cv::Vec2d c_new = res.warp.centre - a_new * t;
     // Largest movement of a patch corner.
     double move = 0.0;
-    for (const cv::Vec2d& corner : {cv::Vec2d(-kAffineHalf, -kAffineHalf), cv::Vec2d(kAffineHalf, -kAffineHalf),
-                                   cv::Vec2d(-kAffineHalf, kAffineHalf), cv::Vec2d(kAffineHalf, kAffineHalf)}) {
+    for (const cv::Vec2d& corner :
+         {cv::Vec2d(-kAffineHalf, -kAffineHalf), cv::Vec2d(kAffineHalf, -kAffineHalf),
+          cv::Vec2d(-kAffineHalf, kAffineHalf), cv::Vec2d(kAffineHalf, kAffineHalf)}) {
       const cv::Vec2d before = res.warp.centre + res.warp.a * corner;
       const cv::Vec2d after = c_new + a_new * corner;
       move = std::max(move, cv::norm(after - before));

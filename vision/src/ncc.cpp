@@ -1,7 +1,7 @@
+#include "pulsetrack/vision/ncc.hpp"
+
 #include <algorithm>
 #include <cmath>
-
-#include "pulsetrack/vision/ncc.hpp"
 
 namespace pulsetrack::vision {
 
@@ -17,7 +17,8 @@ bool NccTemplate::set(const uint8_t* data, size_t stride, int w, int h) noexcept
   for (int y = 0; y < h; ++y) {
     for (int x = 0; x < w; ++x) {
       const int v = data[static_cast<size_t>(y) * stride + static_cast<size_t>(x)];
-      pixels[static_cast<size_t>(y * kTemplatePad + x)] = static_cast<int16_t>(v);
+      pixels[static_cast<size_t>(y) * kTemplatePad + static_cast<size_t>(x)] =
+          static_cast<int16_t>(v);
       sum += v;
       sum_sq += v * v;
     }
@@ -82,8 +83,8 @@ SubPixel quadraticPeak(const float s[9]) noexcept {
   return p;
 }
 
-double normalizedMutualInformation(const uint8_t* a, size_t stride_a, const uint8_t* b, size_t stride_b,
-                                   int w, int h, int bins) noexcept {
+double normalizedMutualInformation(const uint8_t* a, size_t stride_a, const uint8_t* b,
+                                   size_t stride_b, int w, int h, int bins) noexcept {
   bins = std::clamp(bins, 2, 32);
   int amin = 255, amax = 0, bmin = 255, bmax = 0;
   for (int y = 0; y < h; ++y) {
@@ -98,12 +99,14 @@ double normalizedMutualInformation(const uint8_t* a, size_t stride_a, const uint
   }
   if (amax == amin || bmax == bmin) return 0.0;
   std::array<int, 32 * 32> joint{};
-  const auto bin = [bins](int v, int lo, int hi) { return std::min(bins - 1, (v - lo) * bins / (hi - lo + 1)); };
+  const auto bin = [bins](int v, int lo, int hi) {
+    return std::min(bins - 1, (v - lo) * bins / (hi - lo + 1));
+  };
   for (int y = 0; y < h; ++y) {
     for (int x = 0; x < w; ++x) {
       const int ia = bin(a[static_cast<size_t>(y) * stride_a + static_cast<size_t>(x)], amin, amax);
       const int ib = bin(b[static_cast<size_t>(y) * stride_b + static_cast<size_t>(x)], bmin, bmax);
-      ++joint[static_cast<size_t>(ia * 32 + ib)];
+      ++joint[static_cast<size_t>(ia) * 32 + static_cast<size_t>(ib)];
     }
   }
   const double n = static_cast<double>(w) * h;
@@ -111,7 +114,7 @@ double normalizedMutualInformation(const uint8_t* a, size_t stride_a, const uint
   double hab = 0.0;
   for (int i = 0; i < bins; ++i) {
     for (int j = 0; j < bins; ++j) {
-      const int c = joint[static_cast<size_t>(i * 32 + j)];
+      const int c = joint[static_cast<size_t>(i) * 32 + static_cast<size_t>(j)];
       if (c == 0) continue;
       const double p = c / n;
       pa[static_cast<size_t>(i)] += p;
@@ -121,8 +124,10 @@ double normalizedMutualInformation(const uint8_t* a, size_t stride_a, const uint
   }
   double ha = 0.0, hb = 0.0;
   for (int i = 0; i < bins; ++i) {
-    if (pa[static_cast<size_t>(i)] > 0) ha -= pa[static_cast<size_t>(i)] * std::log(pa[static_cast<size_t>(i)]);
-    if (pb[static_cast<size_t>(i)] > 0) hb -= pb[static_cast<size_t>(i)] * std::log(pb[static_cast<size_t>(i)]);
+    if (pa[static_cast<size_t>(i)] > 0)
+      ha -= pa[static_cast<size_t>(i)] * std::log(pa[static_cast<size_t>(i)]);
+    if (pb[static_cast<size_t>(i)] > 0)
+      hb -= pb[static_cast<size_t>(i)] * std::log(pb[static_cast<size_t>(i)]);
   }
   if (ha + hb <= 0.0) return 0.0;
   return std::clamp(2.0 * (ha + hb - hab) / (ha + hb), 0.0, 1.0);

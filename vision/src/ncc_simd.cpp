@@ -32,8 +32,12 @@ void NccScoresImpl(const NccTemplate& t, const uint8_t* region, size_t stride, i
         const int16_t* trow = t.pixels.data() + r * kTemplatePad;
         for (size_t c = 0; c < cols; c += lanes) {
           const auto mask = hn::LoadU(d16, t.column_mask.data() + c);
-          const auto img = hn::Mul(hn::BitCast(d16, hn::PromoteTo(hn::Rebind<uint16_t, decltype(d8)>(), hn::LoadU(d8, row + c))), mask);
-          acc_ti = hn::ReorderWidenMulAccumulate(d32, hn::LoadU(d16, trow + c), img, acc_ti, unused0);
+          const auto img = hn::Mul(
+              hn::BitCast(
+                  d16, hn::PromoteTo(hn::Rebind<uint16_t, decltype(d8)>(), hn::LoadU(d8, row + c))),
+              mask);
+          acc_ti =
+              hn::ReorderWidenMulAccumulate(d32, hn::LoadU(d16, trow + c), img, acc_ti, unused0);
           acc_i = hn::ReorderWidenMulAccumulate(d32, img, mask, acc_i, unused1);
           acc_ii = hn::ReorderWidenMulAccumulate(d32, img, img, acc_ii, unused2);
         }

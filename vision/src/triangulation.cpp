@@ -8,8 +8,8 @@ namespace pulsetrack::vision {
 namespace {
 
 // Pixel of point p (left frame) in a camera x_c = r p + t, and its 2x3 Jacobian d(pixel)/dp.
-bool projectWithJacobian(const CameraModel& cam, const cv::Matx33d& r, const cv::Vec3d& t, const cv::Vec3d& p,
-                         cv::Vec2d& px, cv::Matx23d& jac) noexcept {
+bool projectWithJacobian(const CameraModel& cam, const cv::Matx33d& r, const cv::Vec3d& t,
+                         const cv::Vec3d& p, cv::Vec2d& px, cv::Matx23d& jac) noexcept {
   const cv::Vec3d pc = r * p + t;
   if (!(pc[2] > 1e-9)) return false;
   const double iz = 1.0 / pc[2];
@@ -25,7 +25,8 @@ bool projectWithJacobian(const CameraModel& cam, const cv::Matx33d& r, const cv:
 
 }  // namespace
 
-Triangulation triangulate(const StereoRig& rig, const cv::Vec2d& left_px, const cv::Vec2d& right_px) noexcept {
+Triangulation triangulate(const StereoRig& rig, const cv::Vec2d& left_px,
+                          const cv::Vec2d& right_px) noexcept {
   Triangulation out;
   cv::Vec3d x = midpoint(rig.backProjectLeft(left_px), rig.backProjectRight(right_px));
   if (!std::isfinite(x[0])) return out;

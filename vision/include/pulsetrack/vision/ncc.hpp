@@ -42,7 +42,8 @@ void nccScoresScalar(const NccTemplate& t, const uint8_t* region, size_t stride,
 const char* nccTarget() noexcept;
 
 // The NCC from the exact sums (shared by both kernels).
-inline float nccFromSums(int64_t n, int64_t st, int64_t stt, int64_t si, int64_t sii, int64_t sti) noexcept;
+inline float nccFromSums(int64_t n, int64_t st, int64_t stt, int64_t si, int64_t sii,
+                         int64_t sti) noexcept;
 
 // Sub-pixel apex of a quadratic surface z = a + bx + cy + dx^2 + exy + fy^2 fitted by least
 // squares to the 3x3 scores around an integer peak (paper, section 2.B). Returns the offset

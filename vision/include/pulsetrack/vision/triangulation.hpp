@@ -11,12 +11,13 @@
 namespace pulsetrack::vision {
 
 struct Triangulation {
-  cv::Vec3d point;             // in the left camera frame {C}, mm
-  double reprojection_rms = 0; // px, over the four residuals' two cameras
+  cv::Vec3d point;              // in the left camera frame {C}, mm
+  double reprojection_rms = 0;  // px, over the four residuals' two cameras
   int iterations = 0;
-  bool ok = false;             // false: parallel rays, behind a camera, or no convergence
+  bool ok = false;  // false: parallel rays, behind a camera, or no convergence
 };
 
-Triangulation triangulate(const StereoRig& rig, const cv::Vec2d& left_px, const cv::Vec2d& right_px) noexcept;
+Triangulation triangulate(const StereoRig& rig, const cv::Vec2d& left_px,
+                          const cv::Vec2d& right_px) noexcept;
 
 }  // namespace pulsetrack::vision

@@ -1,0 +1,126 @@
+#pragma once
+// The paper's stereo feature tracker (sections 2.B-2.C), with the design's accuracy fixes:
+//
+// initialize() (may allocate; runs at start and on re-detection):
+//   left ROI -> specular mask (threshold, dilated by the template size) -> "darker than its
+//   neighbourhood" mask (vessels) -> Harris corners on a grid of sub-regions (k per cell, a
+//   ceiling, the sensitivity lowered until the ceiling is met) -> stereo match in the search
+//   box built from the ROI pair and the depth tolerance (NCC, quadratic peak, then an affine
+//   refinement for the two views' different foreshortening) -> gates -> triangulation.
+// track() (per frame: no allocation, no lock, no exception):
+//   each camera: NCC around the last position against the frame-0 template, quadratic peak,
+//   affine refinement against the frame-0 template (no drift) -> gates (NCC, NMI, epipolar,
+//   distance to a parabolic surface fitted to the cloud) -> LM triangulation.
+// A rejected feature keeps its id and its reason, and comes back when it passes again.
+
+#include <cstdint>
+#include <opencv2/core.hpp>
+#include <span>
+#include <vector>
+
+#include "pulsetrack/vision/affine_refiner.hpp"
+#include "pulsetrack/vision/error.hpp"
+#include "pulsetrack/vision/ncc.hpp"
+#include "pulsetrack/vision/stereo_rig.hpp"
+
+namespace pulsetrack::vision {
+
+enum class FeatureStatus : uint8_t {
+  kOk,
+  kOccluded,         // NCC or NMI below the gate: something covers it (instrument, glint)
+  kLost,             // no peak inside the search window, or the refinement left the image
+  kOutlierEpipolar,  // left and right no longer on one epipolar line
+  kOutlierSurface,   // too far from the parabolic surface through the cloud
+  kOutlierTriangulation,
+};
+const char* toString(FeatureStatus s) noexcept;
+
+struct TrackerConfig {
+  int max_features = 100;
+  int grid_cols = 5;
+  int grid_rows = 5;
+  int per_cell = 4;
+  double harris_k = 0.04;
+  double sensitivity_start = 0.2;  // fraction of the strongest Harris response
+  double sensitivity_min = 1e-3;
+  int min_distance_px = 12;
+  double min_isotropy = 0.25;    // smaller / larger eigenvalue of the template's structure tensor
+  int specular_threshold = 215;  // grey level above which a pixel is (part of) a glint
+  int specular_dilate_px = 13;   // the template's half size plus the sheen around a glint
+  int specular_margin_px = 6;    // the same margin around a match, in either camera
+  int dark_window_px = 21;       // "darker than the neighbourhood" window
+  int dark_delta = 2;            // grey levels below the local mean
+  int video_search_px = 8;       // +- window around the last position
+  double min_ncc = 0.75;
+  double min_nmi = 0.25;
+  double max_epipolar_px = 1.0;
+  double max_surface_mm = 2.0;      // distance to the fitted parabola
+  double surface_mad_factor = 6.0;  // ... and at most this many MADs
+  bool affine_refinement = true;
+};
+
+struct Roi {
+  cv::Rect left;
+  cv::Rect right;
+};
+
+struct Feature {
+  int id = 0;
+  FeatureStatus status = FeatureStatus::kOk;
+  cv::Vec2d left;  // current pixel positions
+  cv::Vec2d right;
+  cv::Vec3d point;   // current 3D position in {C}, mm
+  cv::Vec3d point0;  // at the first frame
+  double ncc = 0.0;  // lower of the two cameras' video NCC (stereo NCC at frame 0)
+  double nmi = 0.0;
+  double epipolar_px = 0.0;
+};
+
+// One candidate of the initial stereo match, for `pulsetrack match`.
+struct StereoCandidate {
+  cv::Vec2d left, right;
+  double ncc = 0, nmi = 0, epipolar_px = 0;
+  cv::Vec3d point;
+  FeatureStatus status = FeatureStatus::kOk;
+};
+
+class StereoTracker {
+ public:
+  StereoTracker(const StereoRig& rig, const TrackerConfig& config);
+
+  // Detects and stereo-matches features in the first pair. Returns how many are ok. Fails on
+  // an ROI outside the image or images that are not 8-bit grey of the rig's size.
+  Result<int> initialize(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
+                         double depth_tolerance_mm);
+  // The candidates of the last initialize(), rejected ones included.
+  [[nodiscard]] const std::vector<StereoCandidate>& candidates() const { return candidates_; }
+
+  // Per frame: the real-time path.
+  void track(const cv::Mat& left, const cv::Mat& right) noexcept;
+
+  [[nodiscard]] std::span<const Feature> features() const {
+    return {features_.data(), features_.size()};
+  }
+  [[nodiscard]] int okCount() const noexcept;
+
+ private:
+  struct State {
+    NccTemplate ncc[2];
+    AffineTemplate affine[2];
+    AffineWarp warp[2];  // last good warp per camera
+  };
+  bool trackCamera(int cam, const cv::Mat& img, Feature& f, State& s, double& ncc,
+                   double& nmi) noexcept;
+  void surfaceGate() noexcept;
+
+  StereoRig rig_;
+  TrackerConfig config_;
+  std::vector<Feature> features_;
+  std::vector<State> states_;
+  std::vector<StereoCandidate> candidates_;
+  std::vector<float> scores_;      // sized once: (2R+1)^2
+  std::vector<uint8_t> scratch_;   // a padded copy of a window near the image border
+  std::vector<double> residuals_;  // surface gate, sized to max_features
+};
+
+}  // namespace pulsetrack::vision

@@ -1,0 +1,476 @@
+#include "pulsetrack/vision/stereo_tracker.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+#include <opencv2/imgproc.hpp>
+
+#include "pulsetrack/vision/triangulation.hpp"
+
+namespace pulsetrack::vision {
+
+const char* toString(FeatureStatus s) noexcept {
+  switch (s) {
+    case FeatureStatus::kOk:
+      return "ok";
+    case FeatureStatus::kOccluded:
+      return "occluded";
+    case FeatureStatus::kLost:
+      return "lost";
+    case FeatureStatus::kOutlierEpipolar:
+      return "outlier_epipolar";
+    case FeatureStatus::kOutlierSurface:
+      return "outlier_surface";
+    case FeatureStatus::kOutlierTriangulation:
+      return "outlier_triangulation";
+  }
+  return "unknown";
+}
+
+namespace {
+
+constexpr int kHalf = kAffineHalf;  // 15x15 templates
+constexpr int kSide = kAffineSide;
+
+// NCC of `t` at every template-centre position (x0 + i, y0 + j), 0 <= i < nx, 0 <= j < ny.
+// Windows whose padded reads would leave the image are copied (edge-replicated) into
+// `scratch` first. False when the window's centre is outside the image.
+bool searchWindow(const cv::Mat& img, const NccTemplate& t, int x0, int y0, int nx, int ny,
+                  float* scores, uint8_t* scratch, size_t scratch_size) noexcept {
+  const int left = x0 - kHalf;
+  const int top = y0 - kHalf;
+  const int cols = nx - 1 + kTemplatePad;
+  const int rows = ny - 1 + kSide;
+  if (x0 + nx / 2 < 0 || y0 + ny / 2 < 0 || x0 + nx / 2 >= img.cols || y0 + ny / 2 >= img.rows)
+    return false;
+  if (left >= 0 && top >= 0 && left + cols <= img.cols && top + rows <= img.rows) {
+    nccScores(t, img.ptr<uint8_t>(top) + left, img.step, nx, ny, scores);
+    return true;
+  }
+  if (static_cast<size_t>(cols) * static_cast<size_t>(rows) > scratch_size) return false;
+  for (int r = 0; r < rows; ++r) {
+    const uint8_t* src = img.ptr<uint8_t>(std::clamp(top + r, 0, img.rows - 1));
+    uint8_t* dst = scratch + static_cast<size_t>(r) * static_cast<size_t>(cols);
+    for (int c = 0; c < cols; ++c) dst[c] = src[std::clamp(left + c, 0, img.cols - 1)];
+  }
+  nccScores(t, scratch, static_cast<size_t>(cols), nx, ny, scores);
+  return true;
+}
+
+struct Peak {
+  int i = 0, j = 0;
+  float score = -2.0F;
+  SubPixel sub;
+  bool interior = false;
+};
+
+Peak findPeak(const float* s, int nx, int ny) noexcept {
+  Peak p;
+  for (int j = 0; j < ny; ++j) {
+    for (int i = 0; i < nx; ++i) {
+      if (s[j * nx + i] > p.score) {
+        p.score = s[j * nx + i];
+        p.i = i;
+        p.j = j;
+      }
+    }
+  }
+  p.interior = p.i > 0 && p.j > 0 && p.i < nx - 1 && p.j < ny - 1;
+  if (p.interior) {
+    float n3[9];
+    for (int b = 0; b < 3; ++b) {
+      for (int a = 0; a < 3; ++a) n3[b * 3 + a] = s[(p.j - 1 + b) * nx + p.i - 1 + a];
+    }
+    p.sub = quadraticPeak(n3);
+  }
+  return p;
+}
+
+// The brightest pixel within `margin` px around a template placed at `centre`: a glint's
+// sheen extends several pixels beyond its saturated core and differs between the views.
+int neighbourhoodMax(const cv::Mat& img, const cv::Vec2d& centre, int margin) noexcept {
+  const int cx = static_cast<int>(std::lround(centre[0]));
+  const int cy = static_cast<int>(std::lround(centre[1]));
+  const int r = kHalf + margin;
+  int m = 0;
+  for (int y = std::max(0, cy - r); y <= std::min(img.rows - 1, cy + r); ++y) {
+    const uint8_t* row = img.ptr<uint8_t>(y);
+    for (int x = std::max(0, cx - r); x <= std::min(img.cols - 1, cx + r); ++x)
+      m = std::max(m, static_cast<int>(row[x]));
+  }
+  return m;
+}
+
+bool patchAt(const cv::Mat& img, cv::Vec2d centre, const uint8_t*& top_left) noexcept {
+  const int x = static_cast<int>(std::lround(centre[0])) - kHalf;
+  const int y = static_cast<int>(std::lround(centre[1])) - kHalf;
+  if (x < 0 || y < 0 || x + kSide > img.cols || y + kSide > img.rows) return false;
+  top_left = img.ptr<uint8_t>(y) + x;
+  return true;
+}
+
+}  // namespace
+
+StereoTracker::StereoTracker(const StereoRig& rig, const TrackerConfig& config)
+    : rig_(rig), config_(config) {
+  const int side = 2 * config_.video_search_px + 1;
+  scores_.resize(static_cast<size_t>(side) * side);
+  residuals_.resize(static_cast<size_t>(std::max(config_.max_features, 1)));
+}
+
+int StereoTracker::okCount() const noexcept {
+  return static_cast<int>(std::count_if(features_.begin(), features_.end(), [](const Feature& f) {
+    return f.status == FeatureStatus::kOk;
+  }));
+}
+
+Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
+                                      double depth_tolerance_mm) {
+  const cv::Size size = rig_.left.imageSize();
+  for (const cv::Mat* img : {&left, &right}) {
+    if (img->type() != CV_8UC1 || img->size() != size) {
+      return fail(
+          fmt::format("tracker: images must be {}x{} 8-bit grey (the rig's), got {}x{} type {}",
+                      size.width, size.height, img->cols, img->rows, img->type()));
+    }
+  }
+  const cv::Rect frame(0, 0, size.width, size.height);
+  for (const auto& [name, r] : {std::pair{"left", roi.left}, std::pair{"right", roi.right}}) {
+    if (r.width < 2 * kSide || r.height < 2 * kSide || (r & frame) != r) {
+      return fail(fmt::format(
+          "tracker: {} ROI {},{},{},{} must lie inside the {}x{} image and be at least {} px "
+          "on each side",
+          name, r.x, r.y, r.width, r.height, size.width, size.height, 2 * kSide));
+    }
+  }
+  if (!(depth_tolerance_mm > 0.0))
+    return fail("tracker: the depth tolerance must be positive (mm)");
+
+  // Section 2.B, detection on the left ROI.
+  const cv::Mat img = left(roi.left);
+  cv::Mat specular = img >= config_.specular_threshold;
+  const int sd = config_.specular_dilate_px;
+  cv::dilate(specular, specular,
+             cv::getStructuringElement(cv::MORPH_ELLIPSE, {2 * sd + 1, 2 * sd + 1}));
+  cv::Mat mean;
+  cv::blur(img, mean, {config_.dark_window_px, config_.dark_window_px}, {-1, -1},
+           cv::BORDER_REPLICATE);
+  cv::Mat img16, mean16;
+  img.convertTo(img16, CV_16S);
+  mean.convertTo(mean16, CV_16S);
+  cv::Mat dark = (mean16 - img16) >= config_.dark_delta;
+  cv::dilate(dark, dark, cv::getStructuringElement(cv::MORPH_ELLIPSE, {5, 5}));
+  cv::Mat harris;
+  cv::cornerHarris(img, harris, 3, 3, config_.harris_k);
+  cv::Mat dilated;
+  cv::dilate(harris, dilated, cv::Mat());
+  // The template's own conditioning: a corner at Harris's 3x3 scale can sit on a vessel edge
+  // that, over the 15x15 template, is a line. Along a line the match slides with the noise, and
+  // a slide along the epipolar direction passes the epipolar gate straight into depth (0.6 mm
+  // per px here). Both eigenvalues of the structure tensor over the template must be large.
+  cv::Mat eig;
+  cv::cornerEigenValsAndVecs(img, eig, kSide, 3);
+  const int margin = kHalf + config_.video_search_px + 2;
+  struct Candidate {
+    cv::Point p;
+    float response;
+    int cell;
+  };
+  std::vector<Candidate> maxima;
+  double max_response = 0.0;
+  for (int y = margin; y < img.rows - margin; ++y) {
+    for (int x = margin; x < img.cols - margin; ++x) {
+      const float h = harris.at<float>(y, x);
+      if (h <= 0.0F || h < dilated.at<float>(y, x) || specular.at<uint8_t>(y, x) != 0 ||
+          dark.at<uint8_t>(y, x) == 0) {
+        continue;
+      }
+      const cv::Vec6f& e = eig.at<cv::Vec6f>(y, x);
+      const float l1 = std::max(e[0], e[1]), l2 = std::min(e[0], e[1]);
+      if (!(l2 > 0.0F) || l2 < static_cast<float>(config_.min_isotropy) * l1) continue;
+      const int cell =
+          std::min(config_.grid_rows - 1, y * config_.grid_rows / img.rows) * config_.grid_cols +
+          std::min(config_.grid_cols - 1, x * config_.grid_cols / img.cols);
+      maxima.push_back({{x, y}, h, cell});
+      max_response = std::max(max_response, static_cast<double>(h));
+    }
+  }
+  std::sort(maxima.begin(), maxima.end(),
+            [](const Candidate& a, const Candidate& b) { return a.response > b.response; });
+  std::vector<cv::Point> chosen;
+  // The sensitivity is lowered until the ceiling is met (paper, section 2.B).
+  for (double q = config_.sensitivity_start; q >= config_.sensitivity_min; q *= 0.5) {
+    chosen.clear();
+    std::vector<int> per_cell(static_cast<size_t>(config_.grid_cols * config_.grid_rows), 0);
+    for (const Candidate& c : maxima) {
+      if (c.response < q * max_response) break;
+      if (per_cell[static_cast<size_t>(c.cell)] >= config_.per_cell) continue;
+      const bool crowded = std::any_of(chosen.begin(), chosen.end(), [&](const cv::Point& o) {
+        return std::abs(o.x - c.p.x) < config_.min_distance_px &&
+               std::abs(o.y - c.p.y) < config_.min_distance_px;
+      });
+      if (crowded) continue;
+      chosen.push_back(c.p);
+      ++per_cell[static_cast<size_t>(c.cell)];
+      if (static_cast<int>(chosen.size()) >= config_.max_features) break;
+    }
+    if (static_cast<int>(chosen.size()) >= config_.max_features) break;
+  }
+
+  // The stereo search box: triangulate the ROI corners pairwise, add and subtract the depth
+  // tolerance, reproject the eight corners; their left-to-right offsets bound the search.
+  const cv::Rect& l = roi.left;
+  const cv::Rect& r = roi.right;
+  const cv::Vec2d lc[4] = {{double(l.x), double(l.y)},
+                           {double(l.x + l.width), double(l.y)},
+                           {double(l.x), double(l.y + l.height)},
+                           {double(l.x + l.width), double(l.y + l.height)}};
+  const cv::Vec2d rc[4] = {{double(r.x), double(r.y)},
+                           {double(r.x + r.width), double(r.y)},
+                           {double(r.x), double(r.y + r.height)},
+                           {double(r.x + r.width), double(r.y + r.height)}};
+  double dx_min = 1e9, dx_max = -1e9, dy_min = 1e9, dy_max = -1e9;
+  for (int k = 0; k < 4; ++k) {
+    const Triangulation t = triangulate(rig_, lc[k], rc[k]);
+    if (!t.ok)
+      return fail(
+          "tracker: the ROI pair does not triangulate (do the left and right ROIs correspond?)");
+    for (const double dz : {-depth_tolerance_mm, depth_tolerance_mm}) {
+      const cv::Vec3d p = t.point + cv::Vec3d(0, 0, dz);
+      const cv::Vec2d off = rig_.projectRight(p) - rig_.projectLeft(p);
+      dx_min = std::min(dx_min, off[0]);
+      dx_max = std::max(dx_max, off[0]);
+      dy_min = std::min(dy_min, off[1]);
+      dy_max = std::max(dy_max, off[1]);
+    }
+  }
+  const int sx0 = static_cast<int>(std::floor(dx_min)) - 2,
+            sx1 = static_cast<int>(std::ceil(dx_max)) + 2;
+  const int sy0 = static_cast<int>(std::floor(dy_min)) - 2,
+            sy1 = static_cast<int>(std::ceil(dy_max)) + 2;
+  const int nx = sx1 - sx0 + 1, ny = sy1 - sy0 + 1;
+  std::vector<float> scores(static_cast<size_t>(nx) * static_cast<size_t>(ny));
+  scratch_.assign(
+      static_cast<size_t>(std::max(nx, 2 * config_.video_search_px + 1) - 1 + kTemplatePad) *
+          static_cast<size_t>(std::max(ny, 2 * config_.video_search_px + 1) - 1 + kSide),
+      0);
+
+  candidates_.clear();
+  features_.clear();
+  states_.clear();
+  for (const cv::Point& p : chosen) {
+    const cv::Point pl(p.x + l.x, p.y + l.y);
+    StereoCandidate c;
+    c.left = {double(pl.x), double(pl.y)};
+    State s;
+    if (!s.ncc[0].set(left.ptr<uint8_t>(pl.y - kHalf) + pl.x - kHalf, left.step, kSide, kSide))
+      continue;
+    if (!searchWindow(right, s.ncc[0], pl.x + sx0, pl.y + sy0, nx, ny, scores.data(),
+                      scratch_.data(), scratch_.size())) {
+      continue;
+    }
+    const Peak peak = findPeak(scores.data(), nx, ny);
+    c.ncc = peak.score;
+    c.right = {pl.x + sx0 + peak.i + peak.sub.dx, pl.y + sy0 + peak.j + peak.sub.dy};
+    if (!peak.interior) {
+      c.status = FeatureStatus::kLost;
+      candidates_.push_back(c);
+      continue;
+    }
+    // Affine refinement of the right match against the left template: the views of a tilted
+    // surface are foreshortened differently, which biases the NCC peak.
+    // It must converge: where it does not, the NCC peak itself was 1-2 px off in every case
+    // measured (tests/vision/stereo_tracker_test.cpp), so the candidate is dropped.
+    s.warp[0] = {c.left, cv::Matx22d::eye()};
+    bool refined = !config_.affine_refinement;
+    if (config_.affine_refinement &&
+        s.affine[0].set(left.data, left.step, left.cols, left.rows, s.warp[0])) {
+      const AffineResult ar = s.affine[0].refine(right.data, right.step, right.cols, right.rows,
+                                                 {c.right, cv::Matx22d::eye()});
+      if (ar.converged && cv::norm(ar.warp.centre - c.right) < 1.5) {
+        c.right = ar.warp.centre;
+        refined = true;
+      }
+    }
+    const uint8_t* tl = nullptr;
+    const uint8_t* tr = nullptr;
+    bool glint = false;
+    if (patchAt(left, c.left, tl) && patchAt(right, c.right, tr)) {
+      c.nmi = normalizedMutualInformation(tl, left.step, tr, right.step, kSide, kSide);
+      // Glints differ between the views: one in the right patch only (the left mask cannot
+      // see it) pulls the match by up to a pixel.
+      glint = neighbourhoodMax(right, c.right, config_.specular_margin_px) >=
+              config_.specular_threshold;
+    }
+    c.epipolar_px = rig_.epipolarDistances(c.left, c.right)[0];
+    const Triangulation t = triangulate(rig_, c.left, c.right);
+    c.point = t.point;
+    if (!refined) {
+      c.status = FeatureStatus::kLost;
+    } else if (c.ncc < config_.min_ncc || c.nmi < config_.min_nmi || glint) {
+      c.status = FeatureStatus::kOccluded;
+    } else if (c.epipolar_px > config_.max_epipolar_px) {
+      c.status = FeatureStatus::kOutlierEpipolar;
+    } else if (!t.ok) {
+      c.status = FeatureStatus::kOutlierTriangulation;
+    }
+    candidates_.push_back(c);
+    if (c.status != FeatureStatus::kOk) continue;
+    // Frame-0 templates of both cameras for video matching.
+    const cv::Point pr(static_cast<int>(std::lround(c.right[0])),
+                       static_cast<int>(std::lround(c.right[1])));
+    if (pr.x - kHalf < 0 || pr.y - kHalf < 0 || pr.x + kHalf >= right.cols ||
+        pr.y + kHalf >= right.rows ||
+        !s.ncc[1].set(right.ptr<uint8_t>(pr.y - kHalf) + pr.x - kHalf, right.step, kSide, kSide)) {
+      continue;
+    }
+    s.warp[1] = {c.right, cv::Matx22d::eye()};
+    if (!s.affine[1].set(right.data, right.step, right.cols, right.rows, s.warp[1])) continue;
+    if (!config_.affine_refinement ||
+        !s.affine[0].set(left.data, left.step, left.cols, left.rows, s.warp[0])) {
+      if (config_.affine_refinement) continue;
+    }
+    Feature f;
+    f.id = static_cast<int>(features_.size());
+    f.left = c.left;
+    f.right = c.right;
+    f.point = f.point0 = c.point;
+    f.ncc = c.ncc;
+    f.nmi = c.nmi;
+    f.epipolar_px = c.epipolar_px;
+    features_.push_back(f);
+    states_.push_back(s);
+  }
+  residuals_.resize(std::max<size_t>(features_.size(), 1));
+  surfaceGate();
+  // Report the surface gate's verdicts on the candidates too.
+  for (const Feature& f : features_) {
+    if (f.status == FeatureStatus::kOutlierSurface) {
+      for (StereoCandidate& c : candidates_) {
+        if (c.left == f.left) c.status = FeatureStatus::kOutlierSurface;
+      }
+    }
+  }
+  return okCount();
+}
+
+bool StereoTracker::trackCamera(int cam, const cv::Mat& img, Feature& f, State& s, double& ncc,
+                                double& nmi) noexcept {
+  const int radius = config_.video_search_px;
+  const int side = 2 * radius + 1;
+  const cv::Vec2d last = cam == 0 ? f.left : f.right;
+  const int cx = static_cast<int>(std::lround(last[0]));
+  const int cy = static_cast<int>(std::lround(last[1]));
+  if (!searchWindow(img, s.ncc[cam], cx - radius, cy - radius, side, side, scores_.data(),
+                    scratch_.data(), scratch_.size())) {
+    return false;
+  }
+  const Peak peak = findPeak(scores_.data(), side, side);
+  ncc = peak.score;
+  if (!peak.interior) return false;
+  cv::Vec2d pos(cx - radius + peak.i + peak.sub.dx, cy - radius + peak.j + peak.sub.dy);
+  const uint8_t* patch = nullptr;
+  if (!patchAt(img, pos, patch)) return false;
+  // NMI between the frame-0 template and the patch at the match.
+  std::array<uint8_t, kSide * kSide> t8{};
+  for (int k = 0; k < kSide * kSide; ++k) {
+    t8[static_cast<size_t>(k)] =
+        static_cast<uint8_t>(s.ncc[cam].pixels[static_cast<size_t>(k / kSide) * kTemplatePad +
+                                               static_cast<size_t>(k % kSide)]);
+  }
+  nmi = normalizedMutualInformation(t8.data(), kSide, patch, img.step, kSide, kSide);
+  // A glint over the feature (they move as the surface breathes) gates this frame.
+  if (neighbourhoodMax(img, pos, config_.specular_margin_px) >= config_.specular_threshold)
+    nmi = 0.0;
+  if (config_.affine_refinement) {
+    const AffineResult ar =
+        s.affine[cam].refine(img.data, img.step, img.cols, img.rows, {pos, s.warp[cam].a});
+    if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return false;
+    pos = ar.warp.centre;
+    if (ncc >= config_.min_ncc && nmi >= config_.min_nmi) s.warp[cam] = ar.warp;
+  }
+  (cam == 0 ? f.left : f.right) = pos;
+  return true;
+}
+
+void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
+  for (size_t i = 0; i < features_.size(); ++i) {
+    Feature& f = features_[i];
+    State& s = states_[i];
+    const cv::Vec2d prev_left = f.left, prev_right = f.right;
+    double ncc_l = 0, ncc_r = 0, nmi_l = 0, nmi_r = 0;
+    const bool ok_l = trackCamera(0, left, f, s, ncc_l, nmi_l);
+    const bool ok_r = trackCamera(1, right, f, s, ncc_r, nmi_r);
+    f.ncc = std::min(ncc_l, ncc_r);
+    f.nmi = std::min(nmi_l, nmi_r);
+    const auto keep_last = [&](FeatureStatus why) {
+      // An occluded or lost feature stays where it was last seen, so it is found again there.
+      f.left = prev_left;
+      f.right = prev_right;
+      f.status = why;
+    };
+    if (!ok_l || !ok_r) {
+      keep_last(FeatureStatus::kLost);
+      continue;
+    }
+    if (f.ncc < config_.min_ncc || f.nmi < config_.min_nmi) {
+      keep_last(FeatureStatus::kOccluded);
+      continue;
+    }
+    f.epipolar_px = rig_.epipolarDistances(f.left, f.right)[0];
+    if (f.epipolar_px > config_.max_epipolar_px) {
+      keep_last(FeatureStatus::kOutlierEpipolar);
+      continue;
+    }
+    const Triangulation t = triangulate(rig_, f.left, f.right);
+    if (!t.ok) {
+      keep_last(FeatureStatus::kOutlierTriangulation);
+      continue;
+    }
+    f.point = t.point;
+    f.status = FeatureStatus::kOk;
+  }
+  surfaceGate();
+}
+
+void StereoTracker::surfaceGate() noexcept {
+  // Least squares z = a + bx + cy + dx^2 + exy + fy^2 over the ok features (paper, 2.B).
+  cv::Matx<double, 6, 6> ata = cv::Matx<double, 6, 6>::zeros();
+  cv::Vec<double, 6> atb = cv::Vec<double, 6>::all(0.0);
+  int n = 0;
+  for (const Feature& f : features_) {
+    if (f.status != FeatureStatus::kOk) continue;
+    const double x = f.point[0], y = f.point[1];
+    const cv::Vec<double, 6> row(1, x, y, x * x, x * y, y * y);
+    ata += row * row.t();
+    atb += row * f.point[2];
+    ++n;
+  }
+  if (n < 12) return;  // too few to say what the surface is
+  const cv::Vec<double, 6> coef = ata.solve(atb, cv::DECOMP_CHOLESKY);
+  size_t m = 0;
+  const auto residual = [&](const Feature& f) {
+    const double x = f.point[0], y = f.point[1];
+    const cv::Vec<double, 6> row(1, x, y, x * x, x * y, y * y);
+    return std::abs(f.point[2] - row.dot(coef));
+  };
+  for (const Feature& f : features_) {
+    if (f.status == FeatureStatus::kOk && m < residuals_.size()) residuals_[m++] = residual(f);
+  }
+  std::nth_element(residuals_.begin(), residuals_.begin() + static_cast<long>(m / 2),
+                   residuals_.begin() + static_cast<long>(m));
+  const double med = residuals_[m / 2];
+  for (size_t k = 0; k < m; ++k) residuals_[k] = std::abs(residuals_[k] - med);
+  std::nth_element(residuals_.begin(), residuals_.begin() + static_cast<long>(m / 2),
+                   residuals_.begin() + static_cast<long>(m));
+  const double mad = residuals_[m / 2];
+  const double limit =
+      std::max(config_.max_surface_mm, med + config_.surface_mad_factor * 1.4826 * mad);
+  for (Feature& f : features_) {
+    if (f.status == FeatureStatus::kOk && residual(f) > limit)
+      f.status = FeatureStatus::kOutlierSurface;
+  }
+}
+
+}  // namespace pulsetrack::vision
