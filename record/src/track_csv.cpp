@@ -55,8 +55,9 @@ vision::Result<std::vector<TrackRow>> readTrackCsv(const std::filesystem::path& 
     TrackRow r;
     const char* names[] = {"frame", "t", "id", "xl", "yl", "xr", "yr", "x", "y", "z", "ncc", "nmi"};
     bool ok = parseField(f[0], r.frame) && parseField(f[2], r.id);
-    double* doubles[] = {&r.t,  nullptr, nullptr, &r.xl, &r.yl,  &r.xr,
-                         &r.yr, &r.x,    &r.y,    &r.z,  &r.ncc, &r.nmi};
+    // One slot per field, in the header's order; frame and id are the integers parsed above.
+    double* doubles[] = {nullptr, &r.t, nullptr, &r.xl, &r.yl,  &r.xr,
+                         &r.yr,   &r.x, &r.y,    &r.z,  &r.ncc, &r.nmi};
     size_t bad = ok ? 99 : (parseField(f[0], r.frame) ? 2 : 0);
     for (size_t i = 0; ok && i < 12; ++i) {
       if (doubles[i] != nullptr && !parseField(f[i], *doubles[i])) {

@@ -13,6 +13,7 @@
 #include <opencv2/calib3d.hpp>
 #include <random>
 
+#include "pulsetrack/record/track_csv.hpp"
 #include "test_util.hpp"
 
 namespace pulsetrack::record {
@@ -249,6 +250,57 @@ TEST(RecordingDiskFull, WriteFailsCleanlyAndTheRecordingStaysReadable) {
   EXPECT_EQ(r->truncation().value_or("none"), "none");  // truncated back to a clean end
   cv::Mat l, rr;
   EXPECT_TRUE(r->read(written - 1, l, rr));
+}
+
+}  // namespace
+}  // namespace pulsetrack::record
+
+namespace pulsetrack::record {
+namespace {
+
+TEST(TrackCsv, RoundTripKeepsEveryField) {
+  test::TempDir tmp;
+  const std::vector<TrackRow> rows = {
+      {7, 0.7, 3, 101.25, 202.5, 99.125, 198.75, -1.5, 2.25, 451.125, 0.93, 0.61, "ok"},
+      {8, 0.8, 4, 1, 2, 3, 4, 5, 6, 7, 0.1, 0.2, "occluded"}};
+  ASSERT_TRUE(writeTrackCsv(tmp / "t.csv", rows));
+  auto back = readTrackCsv(tmp / "t.csv");
+  ASSERT_TRUE(back) << back.error().message;
+  ASSERT_EQ(back->size(), 2U);
+  const TrackRow& r = (*back)[0];
+  EXPECT_EQ(r.frame, 7);
+  EXPECT_DOUBLE_EQ(r.t, 0.7);
+  EXPECT_EQ(r.id, 3);
+  EXPECT_DOUBLE_EQ(r.xl, 101.25);
+  EXPECT_DOUBLE_EQ(r.yl, 202.5);
+  EXPECT_DOUBLE_EQ(r.xr, 99.125);
+  EXPECT_DOUBLE_EQ(r.yr, 198.75);
+  EXPECT_DOUBLE_EQ(r.x, -1.5);
+  EXPECT_DOUBLE_EQ(r.y, 2.25);
+  EXPECT_DOUBLE_EQ(r.z, 451.125);
+  EXPECT_DOUBLE_EQ(r.ncc, 0.93);
+  EXPECT_DOUBLE_EQ(r.nmi, 0.61);
+  EXPECT_EQ(r.status, "ok");
+  EXPECT_EQ((*back)[1].status, "occluded");
+}
+
+TEST(TrackCsv, BadFilesAreNamedWithTheLine) {
+  test::TempDir tmp;
+  std::ofstream(tmp / "h.csv") << "frame,t,id\n";
+  auto r = readTrackCsv(tmp / "h.csv");
+  ASSERT_FALSE(r);
+  EXPECT_NE(r.error().message.find("h.csv:1: header must be"), std::string::npos)
+      << r.error().message;
+  std::ofstream(tmp / "s.csv") << kTrackCsvHeader << "\n1,0.1,2,3\n";
+  r = readTrackCsv(tmp / "s.csv");
+  ASSERT_FALSE(r);
+  EXPECT_NE(r.error().message.find("s.csv:2: expected 13 fields, got 4"), std::string::npos)
+      << r.error().message;
+  std::ofstream(tmp / "n.csv") << kTrackCsvHeader << "\n1,abc,2,3,4,5,6,7,8,9,0.9,0.5,ok\n";
+  r = readTrackCsv(tmp / "n.csv");
+  ASSERT_FALSE(r);
+  EXPECT_NE(r.error().message.find("n.csv:2: field 't' is not a number: 'abc'"), std::string::npos)
+      << r.error().message;
 }
 
 }  // namespace

@@ -19,6 +19,8 @@ int main(int argc, char** argv) try {
   runners["calibrate"] = pulsetrack::tools::addCalibrateCommand(app);
   runners["simulate"] = pulsetrack::tools::addSimulateCommand(app);
   runners["evaluate"] = pulsetrack::tools::addEvaluateCommand(app);
+  runners["match"] = pulsetrack::tools::addMatchCommand(app);
+  runners["track"] = pulsetrack::tools::addTrackCommand(app);
   CLI11_PARSE(app, argc, argv);
   for (const CLI::App* sub : app.get_subcommands()) {
     return runners.at(sub->get_name())();

@@ -13,5 +13,7 @@ using CommandRunner = std::function<int()>;
 CommandRunner addCalibrateCommand(CLI::App& app);
 CommandRunner addSimulateCommand(CLI::App& app);
 CommandRunner addEvaluateCommand(CLI::App& app);
+CommandRunner addMatchCommand(CLI::App& app);
+CommandRunner addTrackCommand(CLI::App& app);
 
 }  // namespace pulsetrack::tools

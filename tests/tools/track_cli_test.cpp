@@ -1,0 +1,109 @@
+// `pulsetrack track` and `pulsetrack match` as a user runs them: a simulated recording tracked,
+// scored by `pulsetrack evaluate`; an image folder; clear errors.
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <opencv2/imgcodecs.hpp>
+#include <regex>
+
+#include "pulsetrack/record/recording.hpp"
+#include "pulsetrack/record/track_csv.hpp"
+#include "test_util.hpp"
+
+namespace pulsetrack {
+namespace {
+
+const std::string kRois = " --roi-left 483,339,400,340 --roi-right 476,344,400,340 --depth 20 ";
+
+std::string scenes() { return test::dataDir() + "/../../config/scenes"; }
+
+TEST(TrackCli, RecordingTrackedAndScored) {
+  test::TempDir dir;
+  ASSERT_EQ(test::run(test::cli() + " simulate -q --scene " + scenes() +
+                      "/cortex-60s.toml --frames 12 --out " + (dir / "rec"))
+                .exit_code,
+            0);
+  auto r = test::run(test::cli() + " track -q --input " + (dir / "rec") + kRois + "--out " +
+                     (dir / "track.csv"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("per-frame step    p50"), std::string::npos) << r.output;
+  auto rows = record::readTrackCsv(dir / "track.csv");
+  ASSERT_TRUE(rows) << rows.error().message;
+  ASSERT_FALSE(rows->empty());
+  // Frame numbers are the recording's (dropped frames leave gaps), times its timestamps.
+  auto rec = record::Reader::open(dir.path() / "rec");
+  ASSERT_TRUE(rec);
+  EXPECT_EQ(rows->back().frame, static_cast<long>(rec->meta(rec->size() - 1).frame));
+  r = test::run(test::cli() + " evaluate --recording " + (dir / "rec") + " --track " +
+                (dir / "track.csv"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(r.output, m, std::regex("3D error +RMS ([0-9.]+) mm"))) << r.output;
+  EXPECT_LT(std::stod(m[1]), 0.08) << r.output;
+  EXPECT_NE(r.output.find("outliers > 0.50 mm    0 "), std::string::npos) << r.output;
+}
+
+TEST(TrackCli, ImageFolderAndMatch) {
+  test::TempDir dir;
+  ASSERT_EQ(test::run(test::cli() + " simulate -q --scene " + scenes() +
+                      "/cortex-60s.toml --frames 3 --out " + (dir / "rec"))
+                .exit_code,
+            0);
+  auto rec = record::Reader::open(dir.path() / "rec");
+  ASSERT_TRUE(rec);
+  cv::Mat l, r;
+  for (size_t i = 0; i < rec->size(); ++i) {
+    ASSERT_TRUE(rec->read(i, l, r));
+    cv::imwrite(dir / ("left_" + std::to_string(i) + ".png"), l);
+    cv::imwrite(dir / ("right_" + std::to_string(i) + ".png"), r);
+  }
+  auto out = test::run(test::cli() + " track -q --rig " + (dir / "rec/rig.yaml") + " --left '" +
+                       (dir / "left_*.png") + "' --right '" + (dir / "right_*.png") + "' --fps 10" +
+                       kRois + "--out " + (dir / "t.csv"));
+  ASSERT_EQ(out.exit_code, 0) << out.output;
+  auto rows = record::readTrackCsv(dir / "t.csv");
+  ASSERT_TRUE(rows);
+  EXPECT_NEAR(rows->back().t, 0.1 * static_cast<double>(rec->size() - 1), 1e-9)
+      << test::run("head -3 " + (dir / "t.csv") + "; ls " + dir.path().string()).output;
+  out = test::run(test::cli() + " match --rig " + (dir / "rec/rig.yaml") + " --left " +
+                  (dir / "left_0.png") + " --right " + (dir / "right_0.png") + kRois + "--out " +
+                  (dir / "m.csv"));
+  ASSERT_EQ(out.exit_code, 0) << out.output;
+  std::ifstream csv(dir / "m.csv");
+  std::string header;
+  std::getline(csv, header);
+  EXPECT_EQ(header, "id,xl,yl,xr,yr,ncc,nmi,epipolar_px,x,y,z,status");
+  int ok = 0, n = 0;
+  for (std::string line; std::getline(csv, line); ++n) ok += line.ends_with(",ok") ? 1 : 0;
+  EXPECT_GT(ok, 40);
+  EXPECT_GE(n, ok);
+}
+
+TEST(TrackCli, ClearErrors) {
+  test::TempDir dir;
+  auto r = test::run(test::cli() + " track --input " + (dir / "nope") + kRois + "--out x.csv");
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("not a recording folder"), std::string::npos) << r.output;
+  r = test::run(test::cli() +
+                " track --left 'a*' --right 'b*' --roi-left 1,2,3 --roi-right 1,2,3,4 --out x.csv");
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("--roi-left '1,2,3': expected x,y,w,h"), std::string::npos) << r.output;
+  r = test::run(test::cli() + " track --left '" + (dir / "a*") + "' --right 'b*'" + kRois +
+                "--out x.csv");
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("no file matches"), std::string::npos) << r.output;
+  ASSERT_EQ(test::run(test::cli() + " simulate -q --scene " + scenes() +
+                      "/cortex-60s.toml --frames 1 --out " + (dir / "rec"))
+                .exit_code,
+            0);
+  r = test::run(test::cli() + " track --input " + (dir / "rec") +
+                " --roi-left 1300,1000,200,200 --roi-right 1,1,200,200 --out " + (dir / "x.csv"));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("left ROI 1300,1000,200,200 must lie inside the 1360x1024 image"),
+            std::string::npos)
+      << r.output;
+}
+
+}  // namespace
+}  // namespace pulsetrack

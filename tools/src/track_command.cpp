@@ -1,0 +1,254 @@
+// pulsetrack match / pulsetrack track: the tracking core on one pair or a whole sequence, the
+// same code the daemon runs per frame.
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <charconv>
+#include <chrono>
+#include <fstream>
+#include <memory>
+#include <opencv2/imgcodecs.hpp>
+
+#include "pulsetrack/record/recording.hpp"
+#include "pulsetrack/record/track_csv.hpp"
+#include "pulsetrack/tools/commands.hpp"
+#include "pulsetrack/tools/image_pairs.hpp"
+#include "pulsetrack/vision/stereo_tracker.hpp"
+
+namespace pulsetrack::tools {
+
+namespace {
+
+int error(const char* command, const std::string& message) {
+  fmt::print(stderr, "pulsetrack {}: error: {}\n", command, message);
+  return 1;
+}
+
+vision::Result<cv::Rect> parseRect(const std::string& text, const char* option) {
+  int v[4] = {0, 0, 0, 0};
+  const char* p = text.data();
+  const char* end = text.data() + text.size();
+  for (int i = 0; i < 4; ++i) {
+    const auto [ptr, ec] = std::from_chars(p, end, v[i]);
+    if (ec != std::errc() || (i < 3 && (ptr == end || *ptr != ',')) || (i == 3 && ptr != end)) {
+      return vision::fail(
+          fmt::format("{} '{}': expected x,y,w,h (four integers, pixels)", option, text));
+    }
+    p = ptr + 1;
+  }
+  if (v[2] <= 0 || v[3] <= 0)
+    return vision::fail(fmt::format("{} '{}': width and height must be positive", option, text));
+  return cv::Rect(v[0], v[1], v[2], v[3]);
+}
+
+struct CommonArgs {
+  std::string rig;
+  std::string roi_left;
+  std::string roi_right;
+  double depth = 20.0;
+  int max_features = 100;
+  bool no_affine = false;
+  std::string out;
+};
+
+void addCommon(CLI::App* cmd, CommonArgs& a, bool rig_required) {
+  auto* rig = cmd->add_option("--rig", a.rig, "Rig YAML (pulsetrack calibrate)");
+  if (rig_required) rig->required();
+  cmd->add_option("--roi-left", a.roi_left, "Left ROI on the brain surface: x,y,w,h (px)")
+      ->required();
+  cmd->add_option("--roi-right", a.roi_right, "The corresponding right ROI: x,y,w,h (px)")
+      ->required();
+  cmd->add_option("--depth", a.depth, "Depth tolerance of the stereo search box (mm)")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_option("--max-features", a.max_features, "Feature ceiling")
+      ->check(CLI::Range(1, 1000))
+      ->capture_default_str();
+  cmd->add_flag("--no-affine", a.no_affine,
+                "NCC with the paper's quadratic peak only (no affine refinement)");
+  cmd->add_option("--out", a.out, "CSV to write")->required();
+}
+
+vision::Result<vision::Roi> rois(const CommonArgs& a) {
+  auto l = parseRect(a.roi_left, "--roi-left");
+  if (!l) return std::unexpected(l.error());
+  auto r = parseRect(a.roi_right, "--roi-right");
+  if (!r) return std::unexpected(r.error());
+  return vision::Roi{*l, *r};
+}
+
+vision::Result<cv::Mat> readGrey(const std::string& path) {
+  cv::Mat img;
+  try {
+    img = cv::imread(path, cv::IMREAD_GRAYSCALE);
+  } catch (const cv::Exception& e) {
+    return vision::fail(fmt::format("{}: cannot read image: {}", path, e.err));
+  }
+  if (img.empty()) return vision::fail(fmt::format("{}: unreadable image", path));
+  return img;
+}
+
+struct MatchArgs : CommonArgs {
+  std::string left;
+  std::string right;
+};
+
+int runMatch(const MatchArgs& a) {
+  auto rig = vision::loadRig(a.rig);
+  if (!rig) return error("match", rig.error().message);
+  auto roi = rois(a);
+  if (!roi) return error("match", roi.error().message);
+  auto left = readGrey(a.left);
+  if (!left) return error("match", left.error().message);
+  auto right = readGrey(a.right);
+  if (!right) return error("match", right.error().message);
+  vision::TrackerConfig config;
+  config.max_features = a.max_features;
+  config.affine_refinement = !a.no_affine;
+  vision::StereoTracker tracker(*rig, config);
+  auto ok = tracker.initialize(*left, *right, *roi, a.depth);
+  if (!ok) return error("match", ok.error().message);
+  std::ofstream out(a.out);
+  out << "id,xl,yl,xr,yr,ncc,nmi,epipolar_px,x,y,z,status\n";
+  int id = 0;
+  for (const vision::StereoCandidate& c : tracker.candidates()) {
+    out << fmt::format(
+        "{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.5f},{:.5f},{:.5f},{}\n", id++,
+        c.left[0], c.left[1], c.right[0], c.right[1], c.ncc, c.nmi, c.epipolar_px, c.point[0],
+        c.point[1], c.point[2], vision::toString(c.status));
+  }
+  if (!out) return error("match", fmt::format("{}: write failed", a.out));
+  fmt::print("{} candidates, {} ok, written to {}\n", tracker.candidates().size(), *ok, a.out);
+  return 0;
+}
+
+struct TrackArgs : CommonArgs {
+  std::string input;
+  std::string left;
+  std::string right;
+  double fps = 10.0;
+  bool quiet = false;
+};
+
+int runTrack(const TrackArgs& a) {
+  auto roi = rois(a);
+  if (!roi) return error("track", roi.error().message);
+  std::optional<record::Reader> reader;
+  std::vector<std::pair<std::string, std::string>> pairs;
+  vision::StereoRig rig;
+  if (!a.input.empty()) {
+    if (!a.left.empty() || !a.right.empty())
+      return error("track", "give --input or --left/--right, not both");
+    auto r = record::Reader::open(a.input);
+    if (!r) return error("track", r.error().message);
+    if (r->truncation()) fmt::print(stderr, "warning: {}: {}\n", a.input, *r->truncation());
+    reader.emplace(std::move(*r));
+    rig = reader->rig();
+  } else {
+    if (a.left.empty() || a.right.empty())
+      return error("track", "give --input RECORDING, or --left and --right globs");
+    auto p = pairImages(a.left, a.right);
+    if (!p) return error("track", p.error().message);
+    pairs = std::move(*p);
+  }
+  if (!a.rig.empty()) {
+    auto r = vision::loadRig(a.rig);
+    if (!r) return error("track", r.error().message);
+    rig = *r;
+  } else if (!reader) {
+    return error("track", "--rig is required with image sequences");
+  }
+  const size_t n = reader ? reader->size() : pairs.size();
+  vision::TrackerConfig config;
+  config.max_features = a.max_features;
+  config.affine_refinement = !a.no_affine;
+  vision::StereoTracker tracker(rig, config);
+  std::vector<record::TrackRow> rows;
+  std::vector<double> step_us;
+  cv::Mat left, right;
+  int initial = 0;
+  for (size_t i = 0; i < n; ++i) {
+    long frame = static_cast<long>(i);
+    double t = static_cast<double>(i) / a.fps;
+    if (reader) {
+      if (auto ok = reader->read(i, left, right); !ok) return error("track", ok.error().message);
+      frame = static_cast<long>(reader->meta(i).frame);
+      t = static_cast<double>(reader->meta(i).t_left_ns) * 1e-9;
+    } else {
+      auto l = readGrey(pairs[i].first);
+      if (!l) return error("track", l.error().message);
+      auto r = readGrey(pairs[i].second);
+      if (!r) return error("track", r.error().message);
+      left = *l;
+      right = *r;
+    }
+    if (i == 0) {
+      auto ok = tracker.initialize(left, right, *roi, a.depth);
+      if (!ok) return error("track", ok.error().message);
+      initial = *ok;
+      if (!a.quiet) fmt::print(stderr, "frame 0: {} features\n", initial);
+    } else {
+      const auto t0 = std::chrono::steady_clock::now();
+      tracker.track(left, right);
+      step_us.push_back(
+          std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count());
+    }
+    for (const vision::Feature& f : tracker.features()) {
+      rows.push_back({frame, t, f.id, f.left[0], f.left[1], f.right[0], f.right[1], f.point[0],
+                      f.point[1], f.point[2], f.ncc, f.nmi, vision::toString(f.status)});
+    }
+    if (!a.quiet && (i + 1) % 50 == 0) {
+      fmt::print(stderr, "frame {}/{}: {} of {} features ok\n", i + 1, n, tracker.okCount(),
+                 tracker.features().size());
+    }
+  }
+  if (auto ok = record::writeTrackCsv(a.out, rows); !ok) return error("track", ok.error().message);
+  std::sort(step_us.begin(), step_us.end());
+  const auto pct = [&](double p) {
+    return step_us.empty()
+               ? 0.0
+               : step_us[std::min(step_us.size() - 1,
+                                  static_cast<size_t>(p * static_cast<double>(step_us.size())))];
+  };
+  fmt::print(
+      "frames            {}\n"
+      "features          {} at frame 0, {} ok at the last frame\n"
+      "per-frame step    p50 {:.0f} us, p99 {:.0f} us, max {:.0f} us\n"
+      "track written to  {}\n",
+      n, initial, tracker.okCount(), pct(0.5), pct(0.99), step_us.empty() ? 0.0 : step_us.back(),
+      a.out);
+  return 0;
+}
+
+}  // namespace
+
+CommandRunner addMatchCommand(CLI::App& app) {
+  auto args = std::make_shared<MatchArgs>();
+  CLI::App* cmd = app.add_subcommand(
+      "match", "Detect features in the left ROI and match them in the right image (one pair).");
+  addCommon(cmd, *args, true);
+  cmd->add_option("--left", args->left, "Left image")->required();
+  cmd->add_option("--right", args->right, "Right image")->required();
+  return [args] { return runMatch(*args); };
+}
+
+CommandRunner addTrackCommand(CLI::App& app) {
+  auto args = std::make_shared<TrackArgs>();
+  CLI::App* cmd = app.add_subcommand("track",
+                                     "Track features through a recording or an image sequence; "
+                                     "writes frame,t,id,xl,yl,xr,yr,x,y,z,ncc,nmi,status.");
+  addCommon(cmd, *args, false);
+  cmd->add_option("--input", args->input,
+                  "Recording folder (its rig.yaml is used unless --rig is given)");
+  cmd->add_option("--left", args->left,
+                  "Left images, a quoted glob ('DIR/left_*.png', sorted by name)");
+  cmd->add_option("--right", args->right, "Right images, a quoted glob");
+  cmd->add_option("--fps", args->fps, "Frame rate of an image sequence")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_flag("-q,--quiet", args->quiet, "No progress lines");
+  return [args] { return runTrack(*args); };
+}
+
+}  // namespace pulsetrack::tools
