@@ -142,7 +142,8 @@ int runTrack(const TrackArgs& a) {
       return error("track", "give --input or --left/--right, not both");
     auto r = record::Reader::open(a.input);
     if (!r) return error("track", r.error().message);
-    if (r->truncation()) fmt::print(stderr, "warning: {}: {}\n", a.input, *r->truncation());
+    if (const auto& cut = r->truncation(); cut.has_value())
+      fmt::print(stderr, "warning: {}: {}\n", a.input, cut.value());
     reader.emplace(std::move(*r));
     rig = reader->rig();
   } else {
