@@ -10,6 +10,7 @@
 #include <opencv2/core.hpp>
 
 #include "pulsetrack/sim/paper_rig.hpp"
+#include "sim/image_probe.hpp"
 
 namespace pulsetrack::sim {
 namespace {
@@ -47,37 +48,9 @@ TEST(CortexRender, DotCentroidsLandOnTheirProjection) {
           if (u * u + v * v > 24 * 24) continue;
           const cv::Vec3d p = scene.position(u, v, t);
           const cv::Vec2d proj = cam == 0 ? rig.projectLeft(p) : rig.projectRight(p);
-          const int r = 9;
-          const int x0 = static_cast<int>(std::lround(proj[0]));
-          const int y0 = static_cast<int>(std::lround(proj[1]));
-          // Background: a plane fitted to the window's border (the shading varies across the
-          // window); darkness-weighted centroid inside.
-          cv::Mat a_mat(0, 3, CV_64FC1);
-          cv::Mat b_vec(0, 1, CV_64FC1);
-          for (int k = -r; k <= r; ++k) {
-            for (const cv::Point q : {cv::Point(x0 + k, y0 - r), cv::Point(x0 + k, y0 + r),
-                                      cv::Point(x0 - r, y0 + k), cv::Point(x0 + r, y0 + k)}) {
-              const double row[3] = {1.0, static_cast<double>(q.x - x0),
-                                     static_cast<double>(q.y - y0)};
-              a_mat.push_back(cv::Mat(1, 3, CV_64FC1, const_cast<double*>(row)));
-              b_vec.push_back(static_cast<double>(img.at<float>(q)));
-            }
-          }
-          cv::Mat plane;
-          cv::solve(a_mat, b_vec, plane, cv::DECOMP_SVD);
-          double sw = 0, sx = 0, sy = 0;
-          for (int y = y0 - r + 1; y < y0 + r; ++y) {
-            for (int x = x0 - r + 1; x < x0 + r; ++x) {
-              const double bg = plane.at<double>(0) + plane.at<double>(1) * (x - x0) +
-                                plane.at<double>(2) * (y - y0);
-              const double w = std::max(0.0, bg - img.at<float>(y, x) - 1.0);
-              sw += w;
-              sx += w * x;
-              sy += w * y;
-            }
-          }
-          ASSERT_GT(sw, 0.0) << "no dot at material (" << u << ", " << v << ")";
-          const double e = std::hypot(sx / sw - proj[0], sy / sw - proj[1]);
+          const cv::Vec2d c = test::darkCentroid(img, proj, 9);
+          ASSERT_TRUE(std::isfinite(c[0])) << "no dot at material (" << u << ", " << v << ")";
+          const double e = cv::norm(c - proj);
           worst = std::max(worst, e);
           sum2 += e * e;
           ++n;

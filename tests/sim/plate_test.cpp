@@ -9,6 +9,7 @@
 #include <opencv2/calib3d.hpp>
 
 #include "pulsetrack/sim/paper_rig.hpp"
+#include "sim/image_probe.hpp"
 
 namespace pulsetrack::sim {
 namespace {
@@ -23,35 +24,6 @@ TEST(Plate, NominalCoordinatesAreTheEquations) {
   const double fy[6] = {0, 0, 10, 5, -5, -10};
   for (size_t i = 0; i < 6; ++i)
     EXPECT_EQ(nominalFeatures()[i], cv::Vec3d(fx[i], fy[i], 0)) << "feature " << i + 1;
-}
-
-// Darkness-weighted centroid around `at` with a plane-fitted background.
-cv::Vec2d centroid(const cv::Mat& img, const cv::Vec2d& at, int r) {
-  const int x0 = static_cast<int>(std::lround(at[0]));
-  const int y0 = static_cast<int>(std::lround(at[1]));
-  cv::Mat a(0, 3, CV_64FC1), b(0, 1, CV_64FC1);
-  for (int k = -r; k <= r; ++k) {
-    for (const cv::Point q : {cv::Point(x0 + k, y0 - r), cv::Point(x0 + k, y0 + r),
-                              cv::Point(x0 - r, y0 + k), cv::Point(x0 + r, y0 + k)}) {
-      const double row[3] = {1.0, static_cast<double>(q.x - x0), static_cast<double>(q.y - y0)};
-      a.push_back(cv::Mat(1, 3, CV_64FC1, const_cast<double*>(row)));
-      b.push_back(static_cast<double>(img.at<float>(q)));
-    }
-  }
-  cv::Mat plane;
-  cv::solve(a, b, plane, cv::DECOMP_SVD);
-  double sw = 0, sx = 0, sy = 0;
-  for (int y = y0 - r + 1; y < y0 + r; ++y) {
-    for (int x = x0 - r + 1; x < x0 + r; ++x) {
-      const double bg =
-          plane.at<double>(0) + plane.at<double>(1) * (x - x0) + plane.at<double>(2) * (y - y0);
-      const double w = std::max(0.0, bg - img.at<float>(y, x) - 1.0);
-      sw += w;
-      sx += w * x;
-      sy += w * y;
-    }
-  }
-  return {sx / sw, sy / sw};
 }
 
 TEST(Plate, FeaturesAndDivotsRenderWhereTheEquationsPutThem) {
@@ -73,7 +45,7 @@ TEST(Plate, FeaturesAndDivotsRenderWhereTheEquationsPutThem) {
       };
       for (const cv::Vec3d& f : nominalFeatures()) {
         const cv::Vec2d proj = project(f);
-        const double e = cv::norm(centroid(img, proj, 6) - proj);
+        const double e = cv::norm(test::darkCentroid(img, proj, 6) - proj);
         worst_feature = std::max(worst_feature, e);
         ++n;
       }
@@ -81,7 +53,7 @@ TEST(Plate, FeaturesAndDivotsRenderWhereTheEquationsPutThem) {
         const cv::Vec2d proj = project(d);
         if (proj[0] < 40 || proj[1] < 40 || proj[0] > img.cols - 41 || proj[1] > img.rows - 41)
           continue;
-        worst_divot = std::max(worst_divot, cv::norm(centroid(img, proj, 30) - proj));
+        worst_divot = std::max(worst_divot, cv::norm(test::darkCentroid(img, proj, 30) - proj));
       }
     }
   }
