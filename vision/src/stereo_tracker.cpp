@@ -362,14 +362,42 @@ bool StereoTracker::trackCamera(int cam, const cv::Mat& img, Feature& f, State& 
   const cv::Vec2d last = cam == 0 ? f.left : f.right;
   const int cx = static_cast<int>(std::lround(last[0]));
   const int cy = static_cast<int>(std::lround(last[1]));
-  if (!searchWindow(img, s.ncc[cam], cx - radius, cy - radius, side, side, scores_.data(),
-                    scratch_.data(), scratch_.size())) {
-    return false;
+  // Hill-climb in 3x3 steps from the last position (frame-to-frame motion is mostly under a
+  // pixel: 9-18 placements instead of (2R+1)^2); the whole window only when the climb ends on a
+  // poor score (re-acquisition after an occlusion) or leaves the window.
+  int px = cx, py = cy;
+  Peak peak;
+  bool climbed = false;
+  for (int step = 0; step <= radius; ++step) {
+    if (!searchWindow(img, s.ncc[cam], px - 1, py - 1, 3, 3, scores_.data(), scratch_.data(),
+                      scratch_.size())) {
+      break;
+    }
+    peak = findPeak(scores_.data(), 3, 3);
+    if (peak.interior) {
+      climbed = true;
+      break;
+    }
+    px += peak.i - 1;
+    py += peak.j - 1;
+    if (std::abs(px - cx) >= radius || std::abs(py - cy) >= radius) break;
   }
-  const Peak peak = findPeak(scores_.data(), side, side);
+  if (climbed && peak.score >= config_.min_ncc) {
+    px += peak.i - 1;
+    py += peak.j - 1;
+  } else {
+    if (!searchWindow(img, s.ncc[cam], cx - radius, cy - radius, side, side, scores_.data(),
+                      scratch_.data(), scratch_.size())) {
+      return false;
+    }
+    peak = findPeak(scores_.data(), side, side);
+    ncc = peak.score;
+    if (!peak.interior) return false;
+    px = cx - radius + peak.i;
+    py = cy - radius + peak.j;
+  }
   ncc = peak.score;
-  if (!peak.interior) return false;
-  cv::Vec2d pos(cx - radius + peak.i + peak.sub.dx, cy - radius + peak.j + peak.sub.dy);
+  cv::Vec2d pos(px + peak.sub.dx, py + peak.sub.dy);
   const uint8_t* patch = nullptr;
   if (!patchAt(img, pos, patch)) return false;
   // NMI between the frame-0 template and the patch at the match.
