@@ -5,43 +5,40 @@
 
 namespace pulsetrack::vision {
 
-bool sampleBilinear(const uint8_t* image, size_t stride, int width, int height, double x, double y,
-                    float& out) noexcept {
-  if (!(x >= 0.0) || !(y >= 0.0) || x >= width - 1 || y >= height - 1) return false;
-  const int x0 = static_cast<int>(x);
-  const int y0 = static_cast<int>(y);
-  const auto fx = static_cast<float>(x - x0);
-  const auto fy = static_cast<float>(y - y0);
-  const uint8_t* r0 = image + static_cast<size_t>(y0) * stride + static_cast<size_t>(x0);
-  const uint8_t* r1 = r0 + stride;
-  const float top = static_cast<float>(r0[0]) + fx * static_cast<float>(r0[1] - r0[0]);
-  const float bottom = static_cast<float>(r1[0]) + fx * static_cast<float>(r1[1] - r1[0]);
-  out = top + fy * (bottom - top);
-  return true;
+namespace {
+
+// Catmull-Rom (Keys, a = -0.5) weights of the four taps around a sample at fraction t.
+inline void catmullRom(float t, float w[4]) noexcept {
+  const float t2 = t * t, t3 = t2 * t;
+  w[0] = -0.5F * t3 + t2 - 0.5F * t;
+  w[1] = 1.5F * t3 - 2.5F * t2 + 1.0F;
+  w[2] = -1.5F * t3 + 2.0F * t2 + 0.5F * t;
+  w[3] = 0.5F * t3 - 0.5F * t2;
 }
+
+// The 4x4 bicubic sum at integer (x0, y0) with fractions (fx, fy); no bounds check.
+inline float bicubicAt(const uint8_t* image, size_t stride, int x0, int y0, float fx,
+                       float fy) noexcept {
+  float wx[4], wy[4];
+  catmullRom(fx, wx);
+  catmullRom(fy, wy);
+  const uint8_t* p = image + static_cast<size_t>(y0 - 1) * stride + static_cast<size_t>(x0 - 1);
+  float acc = 0.0F;
+  for (int j = 0; j < 4; ++j, p += stride) {
+    acc += wy[j] * (wx[0] * static_cast<float>(p[0]) + wx[1] * static_cast<float>(p[1]) +
+                    wx[2] * static_cast<float>(p[2]) + wx[3] * static_cast<float>(p[3]));
+  }
+  return acc;
+}
+
+}  // namespace
 
 bool sampleBicubic(const uint8_t* image, size_t stride, int width, int height, double x, double y,
                    float& out) noexcept {
   if (!(x >= 1.0) || !(y >= 1.0) || x >= width - 2 || y >= height - 2) return false;
   const int x0 = static_cast<int>(x);
   const int y0 = static_cast<int>(y);
-  const auto weights = [](double t, float w[4]) {
-    // Catmull-Rom (Keys, a = -0.5).
-    const double t2 = t * t, t3 = t2 * t;
-    w[0] = static_cast<float>(-0.5 * t3 + t2 - 0.5 * t);
-    w[1] = static_cast<float>(1.5 * t3 - 2.5 * t2 + 1.0);
-    w[2] = static_cast<float>(-1.5 * t3 + 2.0 * t2 + 0.5 * t);
-    w[3] = static_cast<float>(0.5 * t3 - 0.5 * t2);
-  };
-  float wx[4], wy[4];
-  weights(x - x0, wx);
-  weights(y - y0, wy);
-  const uint8_t* p = image + static_cast<size_t>(y0 - 1) * stride + static_cast<size_t>(x0 - 1);
-  float acc = 0.0F;
-  for (int j = 0; j < 4; ++j, p += stride) {
-    acc += wy[j] * (wx[0] * p[0] + wx[1] * p[1] + wx[2] * p[2] + wx[3] * p[3]);
-  }
-  out = acc;
+  out = bicubicAt(image, stride, x0, y0, static_cast<float>(x - x0), static_cast<float>(y - y0));
   return true;
 }
 
@@ -60,14 +57,6 @@ bool warpPatch(const uint8_t* image, size_t stride, int width, int height, const
       if (!(u >= 1.0) || !(v >= 1.0) || u >= width - 2 || v >= height - 2) return false;
     }
   }
-  const auto weights = [](float t, float wt[4]) {
-    // Catmull-Rom (Keys, a = -0.5).
-    const float t2 = t * t, t3 = t2 * t;
-    wt[0] = -0.5F * t3 + t2 - 0.5F * t;
-    wt[1] = 1.5F * t3 - 2.5F * t2 + 1.0F;
-    wt[2] = -1.5F * t3 + 2.0F * t2 + 0.5F * t;
-    wt[3] = 0.5F * t3 - 0.5F * t2;
-  };
   int k = 0;
   for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
     double u = w.centre[0] - w.a(0, 0) * kAffineHalf + w.a(0, 1) * y;
@@ -75,16 +64,8 @@ bool warpPatch(const uint8_t* image, size_t stride, int width, int height, const
     for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k, u += w.a(0, 0), v += w.a(1, 0)) {
       const int x0 = static_cast<int>(u);
       const int y0 = static_cast<int>(v);
-      float wx[4], wy[4];
-      weights(static_cast<float>(u - x0), wx);
-      weights(static_cast<float>(v - y0), wy);
-      const uint8_t* p = image + static_cast<size_t>(y0 - 1) * stride + static_cast<size_t>(x0 - 1);
-      float acc = 0.0F;
-      for (int j = 0; j < 4; ++j, p += stride) {
-        acc += wy[j] * (wx[0] * static_cast<float>(p[0]) + wx[1] * static_cast<float>(p[1]) +
-                        wx[2] * static_cast<float>(p[2]) + wx[3] * static_cast<float>(p[3]));
-      }
-      out[static_cast<size_t>(k)] = acc;
+      out[static_cast<size_t>(k)] =
+          bicubicAt(image, stride, x0, y0, static_cast<float>(u - x0), static_cast<float>(v - y0));
     }
   }
   return true;
@@ -132,15 +113,12 @@ bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int hei
   }
   bool ok = false;
   h_inv_ = h.inv(cv::DECOMP_CHOLESKY, &ok);
-  bool ok_t = false;
-  h_inv_translation_ =
-      cv::Matx22d(h(4, 4), h(4, 5), h(5, 4), h(5, 5)).inv(cv::DECOMP_CHOLESKY, &ok_t);
-  return ok && ok_t;
+  return ok;
 }
 
 AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int width, int height,
-                                    const AffineWarp& start, int max_iterations, double epsilon_px,
-                                    bool translation_only) const noexcept {
+                                    const AffineWarp& start, int max_iterations,
+                                    double epsilon_px) const noexcept {
   AffineResult res;
   res.warp = start;
   std::array<float, kAffinePixels> patch{};
@@ -159,14 +137,7 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
       for (size_t i = 0; i < 6; ++i) b[static_cast<int>(i)] += sd_[k][i] * e;
     }
     res.rms = std::sqrt(sse / kAffinePixels);
-    cv::Vec<double, 6> dp = cv::Vec<double, 6>::all(0.0);
-    if (translation_only) {
-      const cv::Vec2d t2 = h_inv_translation_ * cv::Vec2d(b[4], b[5]);
-      dp[4] = t2[0];
-      dp[5] = t2[1];
-    } else {
-      dp = h_inv_ * b;
-    }
+    const cv::Vec<double, 6> dp = h_inv_ * b;
     // Inverse composition: W <- W o W(dp)^-1, with W(dp) = [I + D | t].
     const cv::Matx22d d(1.0 + dp[0], dp[2], dp[1], 1.0 + dp[3]);
     const cv::Matx22d d_inv = d.inv();

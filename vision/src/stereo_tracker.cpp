@@ -257,6 +257,7 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
       0);
 
   candidates_.clear();
+  std::vector<size_t> candidate_of_feature;
   features_.clear();
   states_.clear();
   for (const cv::Point& p : chosen) {
@@ -327,9 +328,14 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     }
     s.warp[1] = {c.right, cv::Matx22d::eye()};
     if (!s.affine[1].set(right.data, right.step, right.cols, right.rows, s.warp[1])) continue;
-    if (!config_.affine_refinement ||
-        !s.affine[0].set(left.data, left.step, left.cols, left.rows, s.warp[0])) {
-      if (config_.affine_refinement) continue;
+    // The frame-0 patches as 8-bit, once: track() compares every match with them (NMI).
+    for (int cam = 0; cam < 2; ++cam) {
+      const cv::Point at = cam == 0 ? pl : pr;
+      const cv::Mat& frame0 = cam == 0 ? left : right;
+      for (int y = 0; y < kSide; ++y) {
+        const uint8_t* row = frame0.ptr<uint8_t>(at.y - kHalf + y) + at.x - kHalf;
+        std::copy(row, row + kSide, s.pixels[cam].begin() + y * kSide);
+      }
     }
     Feature f;
     f.id = static_cast<int>(features_.size());
@@ -341,17 +347,13 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     f.epipolar_px = c.epipolar_px;
     features_.push_back(f);
     states_.push_back(s);
+    candidate_of_feature.push_back(candidates_.size() - 1);
   }
   residuals_.resize(std::max<size_t>(features_.size(), 1));
   surfaceGate();
   // Report the surface gate's verdicts on the candidates too.
-  for (const Feature& f : features_) {
-    if (f.status == FeatureStatus::kOutlierSurface) {
-      for (StereoCandidate& c : candidates_) {
-        if (c.left == f.left) c.status = FeatureStatus::kOutlierSurface;
-      }
-    }
-  }
+  for (size_t i = 0; i < features_.size(); ++i)
+    candidates_[candidate_of_feature[i]].status = features_[i].status;
   return okCount();
 }
 
@@ -401,13 +403,7 @@ bool StereoTracker::trackCamera(int cam, const cv::Mat& img, Feature& f, State& 
   const uint8_t* patch = nullptr;
   if (!patchAt(img, pos, patch)) return false;
   // NMI between the frame-0 template and the patch at the match.
-  std::array<uint8_t, kSide * kSide> t8{};
-  for (int k = 0; k < kSide * kSide; ++k) {
-    t8[static_cast<size_t>(k)] =
-        static_cast<uint8_t>(s.ncc[cam].pixels[static_cast<size_t>(k / kSide) * kTemplatePad +
-                                               static_cast<size_t>(k % kSide)]);
-  }
-  nmi = normalizedMutualInformation(t8.data(), kSide, patch, img.step, kSide, kSide);
+  nmi = normalizedMutualInformation(s.pixels[cam].data(), kSide, patch, img.step, kSide, kSide);
   // A glint over the feature (they move as the surface breathes) gates this frame.
   if (neighbourhoodMax(img, pos, config_.specular_margin_px) >= config_.specular_threshold)
     nmi = 0.0;

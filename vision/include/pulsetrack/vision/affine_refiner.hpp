@@ -42,11 +42,9 @@ class AffineTemplate {
 
   // Refines `start` on `image`: at most `max_iterations`, stops when the update moves the
   // patch corners by less than `epsilon_px`.
-  // `translation_only` keeps the linear part of `start` and moves the centre only (2 dof).
   [[nodiscard]] AffineResult refine(const uint8_t* image, size_t stride, int width, int height,
                                     const AffineWarp& start, int max_iterations = 20,
-                                    double epsilon_px = 1e-3,
-                                    bool translation_only = false) const noexcept;
+                                    double epsilon_px = 1e-3) const noexcept;
 
   [[nodiscard]] const std::array<float, kAffinePixels>& pixels() const { return t_; }
 
@@ -54,14 +52,10 @@ class AffineTemplate {
   std::array<float, kAffinePixels> t_{};
   std::array<std::array<float, 6>, kAffinePixels> sd_{};  // steepest-descent images
   cv::Matx<double, 6, 6> h_inv_;
-  cv::Matx22d h_inv_translation_;
   double mean_ = 0.0;
   double spread_ = 0.0;
 };
 
-// Bilinear sample of an 8-bit image; false outside [0, w-1) x [0, h-1).
-bool sampleBilinear(const uint8_t* image, size_t stride, int width, int height, double x, double y,
-                    float& out) noexcept;
 // Bicubic (Catmull-Rom) sample; false outside [1, w-2) x [1, h-2).
 bool sampleBicubic(const uint8_t* image, size_t stride, int width, int height, double x, double y,
                    float& out) noexcept;

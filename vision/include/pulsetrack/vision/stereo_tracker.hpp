@@ -13,6 +13,7 @@
 //   distance to a parabolic surface fitted to the cloud) -> LM triangulation.
 // A rejected feature keeps its id and its reason, and comes back when it passes again.
 
+#include <array>
 #include <cstdint>
 #include <opencv2/core.hpp>
 #include <span>
@@ -107,7 +108,8 @@ class StereoTracker {
   struct State {
     NccTemplate ncc[2];
     AffineTemplate affine[2];
-    AffineWarp warp[2];  // last good warp per camera
+    AffineWarp warp[2];                            // last good warp per camera
+    std::array<uint8_t, kAffinePixels> pixels[2];  // the frame-0 templates, for NMI
   };
   bool trackCamera(int cam, const cv::Mat& img, Feature& f, State& s, double& ncc,
                    double& nmi) noexcept;
