@@ -108,8 +108,8 @@ class StereoTracker {
   struct State {
     NccTemplate ncc[2];
     AffineTemplate affine[2];
-    AffineWarp warp[2];                            // last good warp per camera
-    std::array<uint8_t, kAffinePixels> pixels[2];  // the frame-0 templates, for NMI
+    AffineWarp warp[2];                              // last good warp per camera
+    std::array<uint8_t, kAffinePixels> pixels[2]{};  // the frame-0 templates, for NMI
   };
   bool trackCamera(int cam, const cv::Mat& img, Feature& f, State& s, double& ncc,
                    double& nmi) noexcept;
