@@ -9,6 +9,8 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "pulsetrack/vision/shift_kernel.hpp"
+
 namespace pulsetrack::vision {
 namespace {
 
@@ -92,6 +94,97 @@ TEST(AffineRefiner, RefusesFlatPatchesAndTheBorder) {
   const AffineResult r =
       t.refine(img.data, img.step, img.cols, img.rows, {{3.0, 100.0}, cv::Matx22d::eye()});
   EXPECT_FALSE(r.converged);
+}
+
+// Video matching's translation refinement: sub-pixel shifts through a gain and bias change,
+// from a start up to 1.5 px off; the NCC it reports equals the NCC of the resampled patch.
+TEST(ShiftRefiner, RecoversAKnownShiftThroughGainAndBias) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  double worst = 0.0, sum2 = 0.0;
+  for (int trial = 0; trial < 40; ++trial) {
+    const Texture tex(static_cast<unsigned>(trial + 100));
+    const cv::Mat src8 = tex.image([](const cv::Vec2d& p) { return p; });
+    ShiftTemplate t;
+    const cv::Vec2d rest(100.0 + 0.5 * u(rng), 100.0 + 0.5 * u(rng));
+    ASSERT_TRUE(t.set(src8.data, src8.step, src8.cols, src8.rows, rest));
+    const cv::Vec2d shift(1.5 * u(rng), 1.5 * u(rng));
+    const cv::Mat moved8 = tex.image([&](const cv::Vec2d& p) { return p - shift; }, 0.75, 20.0);
+    const AffineResult r = t.refine(moved8.data, moved8.step, moved8.cols, moved8.rows, rest);
+    ASSERT_TRUE(r.converged) << trial;
+    const double e = cv::norm(r.warp.centre - (rest + shift));
+    worst = std::max(worst, e);
+    sum2 += e * e;
+    EXPECT_LT(e, 0.03) << trial;
+    EXPECT_GT(r.ncc, 0.99) << trial;
+    EXPECT_LE(r.ncc, 1.0 + 1e-9) << trial;
+    EXPECT_LE(r.iterations, 8) << trial;
+    // The scalar reference kernel takes the same path to the same answer.
+    const AffineResult s = t.refine(moved8.data, moved8.step, moved8.cols, moved8.rows, rest, 10,
+                                    2e-3, /*scalar=*/true);
+    EXPECT_EQ(s.iterations, r.iterations) << trial;
+    EXPECT_LT(cv::norm(s.warp.centre - r.warp.centre), 1e-4) << trial;
+  }
+  const double rms = std::sqrt(sum2 / 40.0);
+  std::cout << "translation refinement, 40 shifted 8-bit patches: error RMS " << rms
+            << " px, worst " << worst << " px\n";
+  EXPECT_LT(rms, 0.015);
+}
+
+TEST(ShiftRefiner, SimdKernelMatchesTheScalarReference) {
+  const cv::Mat img = Texture(7).image([](const cv::Vec2d& p) { return p; });
+  std::mt19937 rng(9);
+  std::uniform_real_distribution<float> u(0.0F, 1.0F);
+  std::array<float, kShiftRows * kShiftCols> t{}, gx{}, gy{};
+  std::array<float, kShiftCols> mask{};
+  for (size_t k = 0; k < t.size(); ++k) {
+    const bool pad = k % kShiftCols == kShiftCols - 1;
+    t[k] = pad ? 0.0F : 255.0F * u(rng);
+    gx[k] = pad ? 0.0F : 40.0F * (u(rng) - 0.5F);
+    gy[k] = pad ? 0.0F : 40.0F * (u(rng) - 0.5F);
+  }
+  for (int c = 0; c < kShiftCols; ++c) mask[static_cast<size_t>(c)] = c < kShiftRows ? 1.0F : 0.0F;
+  for (int trial = 0; trial < 50; ++trial) {
+    ShiftKernelInput in;
+    in.image = img.ptr<uint8_t>(20 + trial) + 30 + 2 * trial;
+    in.stride = img.step;
+    const float fx = u(rng), fy = u(rng);
+    // Catmull-Rom weights as the refiner makes them.
+    const auto cr = [](float f, float* w) {
+      const float f2 = f * f, f3 = f2 * f;
+      w[0] = -0.5F * f3 + f2 - 0.5F * f;
+      w[1] = 1.5F * f3 - 2.5F * f2 + 1.0F;
+      w[2] = -1.5F * f3 + 2.0F * f2 + 0.5F * f;
+      w[3] = 0.5F * f3 - 0.5F * f2;
+    };
+    cr(fx, in.wx);
+    cr(fy, in.wy);
+    in.t = t.data();
+    in.gx = gx.data();
+    in.gy = gy.data();
+    in.mask = mask.data();
+    ShiftSums a, b;
+    shiftSums(in, a);
+    shiftSumsScalar(in, b);
+    // Float sums in a different order: equal to float rounding.
+    EXPECT_NEAR(a.p, b.p, 1e-5 * std::abs(b.p) + 1e-3);
+    EXPECT_NEAR(a.pp, b.pp, 1e-5 * std::abs(b.pp) + 1e-3);
+    EXPECT_NEAR(a.gxp, b.gxp, 1e-4 * std::abs(b.gxp) + 0.5);
+    EXPECT_NEAR(a.gyp, b.gyp, 1e-4 * std::abs(b.gyp) + 0.5);
+    EXPECT_NEAR(a.tp, b.tp, 1e-5 * std::abs(b.tp) + 1e-3);
+  }
+}
+
+TEST(ShiftRefiner, RefusesFlatPatchesAndTheBorder) {
+  const cv::Mat flat(50, 50, CV_8UC1, cv::Scalar(100));
+  ShiftTemplate t;
+  EXPECT_FALSE(t.set(flat.data, flat.step, 50, 50, {25.0, 25.0}));
+  const cv::Mat img = Texture(1).image([](const cv::Vec2d& p) { return p; });
+  EXPECT_FALSE(t.set(img.data, img.step, img.cols, img.rows, {5.0, 100.0}));
+  ASSERT_TRUE(t.set(img.data, img.step, img.cols, img.rows, {100.0, 100.0}));
+  EXPECT_FALSE(t.refine(img.data, img.step, img.cols, img.rows, {3.0, 100.0}).converged);
+  EXPECT_FALSE(t.refine(img.data, img.step, img.cols, img.rows, {192.0, 100.0}).converged);
+  EXPECT_FALSE(t.refine(img.data, img.step, img.cols, img.rows, {std::nan(""), 100.0}).converged);
 }
 
 }  // namespace

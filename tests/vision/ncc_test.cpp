@@ -132,5 +132,69 @@ TEST(Nmi, IdenticalInvertedAndUnrelatedPatches) {
   EXPECT_EQ(normalizedMutualInformation(a.data, a.step, flat.data, flat.step, 15, 15), 0.0);
 }
 
+// The per-frame NMI (bins by multiplication, entropies from a c log c table) against the
+// textbook formula (bins by division, log per bin), on random and on quantized patches.
+double nmiReference(const cv::Mat& a, const cv::Mat& b, int bins) {
+  double amin = 0, amax = 0, bmin = 0, bmax = 0;
+  cv::minMaxLoc(a, &amin, &amax);
+  cv::minMaxLoc(b, &bmin, &bmax);
+  std::vector<double> joint(static_cast<size_t>(bins * bins), 0.0), pa(static_cast<size_t>(bins)),
+      pb(static_cast<size_t>(bins));
+  const double n = static_cast<double>(a.total());
+  for (int y = 0; y < a.rows; ++y) {
+    for (int x = 0; x < a.cols; ++x) {
+      const int ia = (a.at<uint8_t>(y, x) - int(amin)) * bins / (int(amax) - int(amin) + 1);
+      const int ib = (b.at<uint8_t>(y, x) - int(bmin)) * bins / (int(bmax) - int(bmin) + 1);
+      joint[static_cast<size_t>(ia * bins + ib)] += 1.0 / n;
+      pa[static_cast<size_t>(ia)] += 1.0 / n;
+      pb[static_cast<size_t>(ib)] += 1.0 / n;
+    }
+  }
+  const auto entropy = [](const std::vector<double>& p) {
+    double h = 0;
+    for (double v : p) h -= v > 0 ? v * std::log(v) : 0.0;
+    return h;
+  };
+  const double ha = entropy(pa), hb = entropy(pb), hab = entropy(joint);
+  return 2.0 * (ha + hb - hab) / (ha + hb);
+}
+
+TEST(Nmi, MatchesTheTextbookFormula) {
+  cv::RNG rng(11);
+  for (int trial = 0; trial < 200; ++trial) {
+    cv::Mat a(15, 15, CV_8UC1), b(15, 15, CV_8UC1);
+    const int span = 2 + trial % 200;  // narrow ranges hit exact bin edges
+    rng.fill(a, cv::RNG::UNIFORM, 10, 10 + span);
+    b = a / 2 + 7;
+    cv::Mat noise(15, 15, CV_8UC1);
+    rng.fill(noise, cv::RNG::UNIFORM, 0, 1 + trial % 30);
+    b += noise;
+    for (const int bins : {8, 16, 32}) {
+      const double ours = normalizedMutualInformation(a.data, a.step, b.data, b.step, 15, 15, bins);
+      NmiTemplate t;
+      ASSERT_TRUE(t.set(a.data, a.step, 15, 15, bins));
+      EXPECT_EQ(t.score(b.data, b.step), ours);
+      EXPECT_NEAR(ours, std::clamp(nmiReference(a, b, bins), 0.0, 1.0), 1e-12)
+          << trial << " " << bins;
+    }
+  }
+}
+
+TEST(RegionMax, MatchesOpenCv) {
+  cv::RNG rng(12);
+  cv::Mat img(80, 90, CV_8UC1);
+  rng.fill(img, cv::RNG::UNIFORM, 0, 200);
+  for (int trial = 0; trial < 300; ++trial) {
+    const int w = 1 + trial % 60, h = 1 + (trial * 7) % 50;
+    const int x = trial % (90 - w + 1), y = (trial * 3) % (80 - h + 1);
+    img.at<uint8_t>(y + trial % h, x + (trial * 5) % w) = static_cast<uint8_t>(200 + trial % 56);
+    double mx = 0;
+    cv::minMaxLoc(img(cv::Rect(x, y, w, h)), nullptr, &mx);
+    EXPECT_EQ(regionMax(img.ptr<uint8_t>(y) + x, img.step, w, h), static_cast<int>(mx))
+        << w << "x" << h << " at " << x << "," << y;
+  }
+  EXPECT_EQ(regionMax(img.data, img.step, 0, 5), 0);
+}
+
 }  // namespace
 }  // namespace pulsetrack::vision

@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <iostream>
 #include <opencv2/imgproc.hpp>
 
@@ -75,49 +76,185 @@ sim::SceneSpec staticCortex() {
   return spec;
 }
 
-void report(const char* what, const TrackRun& run, double& worst_feature, long& occluded) {
+void report(const char* what, const TrackRun& run, double& worst_feature, long& occluded,
+            double& median_feature) {
   const sim::Evaluation& ev = run.ev;
   worst_feature = 0.0;
-  for (const auto& f : ev.per_feature) worst_feature = std::max(worst_feature, f.rms_mm);
+  std::vector<double> per;
+  for (const auto& f : ev.per_feature) {
+    worst_feature = std::max(worst_feature, f.rms_mm);
+    per.push_back(f.rms_mm);
+  }
+  std::sort(per.begin(), per.end());
+  median_feature = per.empty() ? 0.0 : per[per.size() / 2];
+  const auto over = std::count_if(per.begin(), per.end(), [](double v) { return v > 0.05; });
   occluded = ev.not_ok.count("occluded") != 0U ? ev.not_ok.at("occluded") : 0;
   std::cout << what << ": " << run.initial_ok << " features; 3D error RMS " << ev.rms_mm
-            << " mm, worst feature RMS " << worst_feature << " mm, max " << ev.max_mm << " mm, "
+            << " mm, per-feature RMS median " << median_feature << " mm, worst " << worst_feature
+            << " mm, " << over << " features over 0.05 mm; max " << ev.max_mm << " mm, "
             << ev.outliers << " ok rows > 0.5 mm; " << occluded << " rows occluded\n";
 }
 
-// The issue's figure is a per-feature RMS <= 0.05 mm. Measured here: met on a matte cortex
-// (worst feature 0.088 mm, overall 0.046 mm: close), not on the glossy one, where the
-// sub-saturation sheen of glints differs between the two views and biases the stereo match of
-// some features by up to 0.3 px (worst feature 0.19 mm). These tests hold what is achieved;
-// the issue stays open until the target is.
+// The issue: per-feature 3D RMS <= 0.05 mm; no ok row off by more than 0.5 mm. Met overall
+// (every ok row of every feature) and by the median feature on both surfaces; not by every
+// feature: each feature's error is mostly a constant offset from its frame-0 stereo match
+// (0.63 mm of depth per pixel of disparity here, so 0.05 mm is 0.08 px), and a few features
+// are matched 0.1-0.25 px off: on the glossy cortex, where sheen below the glint threshold
+// differs between the views. A constant offset does not enter the displacements the system
+// reports, but it is an error of the position, and these tests hold it where it is.
 TEST(StereoTracker, StaticMatteCortexAt45cm) {
   sim::SceneSpec spec = staticCortex();
   spec.cortex.specular_strength = 0.0;
   const TrackRun run = trackScene(spec, 30);
-  double worst = 0;
+  double worst = 0, median = 0;
   long occluded = 0;
   report("static matte cortex, 45 cm, 30 frames, noise 2 grey levels, instrument", run, worst,
-         occluded);
+         occluded, median);
   EXPECT_GE(run.initial_ok, 80);
   EXPECT_LE(run.ev.rms_mm, 0.05);
+  EXPECT_LE(median, 0.05);
   EXPECT_LE(worst, 0.1);
   EXPECT_LE(run.ev.max_mm, 0.25);
   EXPECT_EQ(run.ev.outliers, 0);
+  EXPECT_GT(occluded, 0);  // the instrument was seen and reported, not tracked through
 }
 
 TEST(StereoTracker, StaticGlossyCortexAt45cm) {
   const TrackRun run = trackScene(staticCortex(), 30);
-  double worst = 0;
+  double worst = 0, median = 0;
   long occluded = 0;
   report("static glossy cortex (glints), 45 cm, 30 frames, noise 2 grey levels, instrument", run,
-         worst, occluded);
+         worst, occluded, median);
   EXPECT_GE(run.initial_ok, 60);
-  EXPECT_LE(run.ev.rms_mm, 0.07);
-  EXPECT_LE(worst, 0.22);
+  EXPECT_LE(run.ev.rms_mm, 0.05);
+  EXPECT_LE(median, 0.05);
+  EXPECT_LE(worst, 0.2);
   EXPECT_LE(run.ev.max_mm, 0.5);  // the issue: no ok feature off by more than 0.5 mm in any frame
   EXPECT_EQ(run.ev.outliers, 0);
-  EXPECT_GT(occluded,
-            0);  // the instrument and the glints were seen and reported, not tracked through
+  EXPECT_GT(occluded, 0);  // the instrument and the glints were seen and reported
+}
+
+// Re-detection: when most features are lost (here the right camera goes dark), the tracker
+// says so; re-detecting gives new ids, never reused, and features ok again.
+TEST(StereoTracker, RedetectsWhenTooFewRemain) {
+  sim::SceneSpec spec = staticCortex();
+  spec.supersample = 1;
+  spec.cortex.instrument.enabled = false;
+  sim::StereoSimulator s(spec, sim::paperRig());
+  StereoTracker tracker(s.rig(), TrackerConfig{});
+  EXPECT_FALSE(tracker.redetect(cv::Mat(), cv::Mat()));  // nothing to repeat yet
+  cv::Mat l, r;
+  s.render(0, l, r);
+  auto first = tracker.initialize(l, r, roiFor(s, 19.0), 20.0);
+  ASSERT_TRUE(first);
+  ASSERT_GT(*first, 20);
+  int max_id = 0;
+  for (const Feature& f : tracker.features()) max_id = std::max(max_id, f.id);
+  s.render(1, l, r);
+  tracker.track(l, r);
+  EXPECT_FALSE(tracker.needsRedetection());
+  const cv::Mat dark(r.size(), CV_8UC1, cv::Scalar(0));
+  tracker.track(l, dark);
+  EXPECT_EQ(tracker.okCount(), 0);
+  EXPECT_TRUE(tracker.needsRedetection());
+  auto again = tracker.redetect(l, r);
+  ASSERT_TRUE(again) << again.error().message;
+  EXPECT_GT(*again, 20);
+  EXPECT_FALSE(tracker.needsRedetection());
+  for (const Feature& f : tracker.features()) EXPECT_GT(f.id, max_id);
+}
+
+// Kabsch: the rigid transform taking `from` onto `to` (least squares).
+sim::Pose fitRigid(const std::vector<cv::Vec3d>& from, const std::vector<cv::Vec3d>& to) {
+  cv::Vec3d ca(0, 0, 0), cb(0, 0, 0);
+  for (size_t i = 0; i < from.size(); ++i) {
+    ca += from[i];
+    cb += to[i];
+  }
+  ca /= static_cast<double>(from.size());
+  cb /= static_cast<double>(to.size());
+  cv::Matx33d h = cv::Matx33d::zeros();
+  for (size_t i = 0; i < from.size(); ++i) h += (from[i] - ca) * (to[i] - cb).t();
+  cv::Mat w, u, vt;
+  cv::SVD::compute(cv::Mat(h), w, u, vt);
+  cv::Matx33d uu(reinterpret_cast<const double*>(u.data));
+  cv::Matx33d vv = cv::Matx33d(reinterpret_cast<const double*>(vt.data)).t();
+  const double d = cv::determinant(vv * uu.t()) < 0 ? -1.0 : 1.0;
+  const cv::Matx33d r = vv * cv::Matx33d::diag({1.0, 1.0, d}) * uu.t();
+  return {r, cb - r * ca};
+}
+
+// The paper's static plate protocol (section 4.C.1): the plate's pose from its six features,
+// one snapshot per acquisition, against the true pose. The features are 0.5 mm conical holes:
+// the blob detector centres the templates on them.
+TEST(StereoTracker, StaticPlatePoseFromTheSixFeatures) {
+  auto spec =
+      sim::loadScene(std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/plate-static.toml");
+  ASSERT_TRUE(spec) << spec.error().message;
+  sim::StereoSimulator s(*spec, sim::paperRig());
+  TrackerConfig config;
+  config.detector = Detector::kDarkBlobs;
+  config.max_features = 6;
+  const auto& samples = s.plate()->samples();
+  std::vector<double> dt, dr;
+  int found_all = 0;
+  for (size_t i = 0; i < samples.size(); i += 2) {  // every other acquisition (time)
+    const sim::Pose& truth = samples[i].c_t_p;
+    std::vector<cv::Point2f> pl, pr;
+    std::vector<cv::Vec3d> nominal;
+    for (const cv::Vec3d& f : sim::nominalFeatures()) {
+      const cv::Vec2d a = s.rig().projectLeft(truth * f), b = s.rig().projectRight(truth * f);
+      pl.emplace_back(static_cast<float>(a[0]), static_cast<float>(a[1]));
+      pr.emplace_back(static_cast<float>(b[0]), static_cast<float>(b[1]));
+      nominal.push_back(f);
+    }
+    // The operator's ROI: the six features' box with a margin.
+    const auto box = [](const std::vector<cv::Point2f>& p) {
+      cv::Rect r = cv::boundingRect(p);
+      return cv::Rect(r.x - 40, r.y - 40, r.width + 80, r.height + 80);
+    };
+    cv::Mat l, r;
+    s.render(static_cast<int>(i), l, r);
+    StereoTracker tracker(s.rig(), config);
+    auto ok = tracker.initialize(l, r, {box(pl), box(pr)}, 20.0);
+    ASSERT_TRUE(ok) << ok.error().message;
+    // Each measured feature to its nearest true one (the evaluation's rule).
+    std::vector<cv::Vec3d> from, to;
+    for (const Feature& f : tracker.features()) {
+      if (f.status != FeatureStatus::kOk) continue;
+      int best = -1;
+      double bd = 2.0;
+      for (size_t k = 0; k < nominal.size(); ++k) {
+        const double d = cv::norm(truth * nominal[k] - f.point);
+        if (d < bd) {
+          bd = d;
+          best = static_cast<int>(k);
+        }
+      }
+      if (best < 0) continue;
+      from.push_back(nominal[static_cast<size_t>(best)]);
+      to.push_back(f.point);
+    }
+    if (from.size() == 6) ++found_all;
+    if (from.size() < 4) continue;
+    const sim::Pose est = fitRigid(from, to);
+    dt.push_back(cv::norm(est.t - truth.t));
+    const cv::Matx33d dR = est.r * truth.r.t();
+    dr.push_back(std::acos(std::clamp((cv::trace(dR) - 1.0) / 2.0, -1.0, 1.0)) * 180.0 / CV_PI);
+  }
+  ASSERT_FALSE(dt.empty());
+  const auto median = [](std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + static_cast<long>(v.size() / 2), v.end());
+    return v[v.size() / 2];
+  };
+  const double mt = median(dt), mr = median(dr);
+  std::cout << "static plate, " << dt.size() << " acquisitions (" << found_all
+            << " with all six features): median translation error " << mt << " mm (max "
+            << *std::max_element(dt.begin(), dt.end()) << "), rotation " << mr << " deg (max "
+            << *std::max_element(dr.begin(), dr.end()) << ")\n";
+  EXPECT_GE(found_all, static_cast<int>(dt.size()) * 9 / 10);
+  EXPECT_LE(mt, 0.1);  // the issue's figures (paper: < 0.6 mm, < 1.6 deg)
+  EXPECT_LE(mr, 0.3);
 }
 
 }  // namespace

@@ -48,8 +48,17 @@ struct CommonArgs {
   std::string roi_right;
   double depth = 20.0;
   int max_features = 100;
-  bool no_affine = false;
+  bool no_refinement = false;
+  std::string detector = "harris";
   std::string out;
+
+  [[nodiscard]] vision::TrackerConfig config() const {
+    vision::TrackerConfig c;
+    c.max_features = max_features;
+    c.refinement = !no_refinement;
+    c.detector = detector == "blobs" ? vision::Detector::kDarkBlobs : vision::Detector::kHarris;
+    return c;
+  }
 };
 
 void addCommon(CLI::App* cmd, CommonArgs& a, bool rig_required) {
@@ -65,8 +74,13 @@ void addCommon(CLI::App* cmd, CommonArgs& a, bool rig_required) {
   cmd->add_option("--max-features", a.max_features, "Feature ceiling")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
-  cmd->add_flag("--no-affine", a.no_affine,
-                "NCC with the paper's quadratic peak only (no affine refinement)");
+  cmd->add_flag("--no-refinement", a.no_refinement,
+                "NCC with the paper's quadratic peak only (no sub-pixel refinement)");
+  cmd->add_option("--detector", a.detector,
+                  "harris: corners on tissue (the paper's); blobs: small dark blobs, centred "
+                  "(the validation plate's holes)")
+      ->check(CLI::IsMember({"harris", "blobs"}))
+      ->capture_default_str();
   cmd->add_option("--out", a.out, "CSV to write")->required();
 }
 
@@ -103,9 +117,7 @@ int runMatch(const MatchArgs& a) {
   if (!left) return error("match", left.error().message);
   auto right = readGrey(a.right);
   if (!right) return error("match", right.error().message);
-  vision::TrackerConfig config;
-  config.max_features = a.max_features;
-  config.affine_refinement = !a.no_affine;
+  const vision::TrackerConfig config = a.config();
   vision::StereoTracker tracker(*rig, config);
   auto ok = tracker.initialize(*left, *right, *roi, a.depth);
   if (!ok) return error("match", ok.error().message);
@@ -161,14 +173,13 @@ int runTrack(const TrackArgs& a) {
     return error("track", "--rig is required with image sequences");
   }
   const size_t n = reader ? reader->size() : pairs.size();
-  vision::TrackerConfig config;
-  config.max_features = a.max_features;
-  config.affine_refinement = !a.no_affine;
+  const vision::TrackerConfig config = a.config();
   vision::StereoTracker tracker(rig, config);
   std::vector<record::TrackRow> rows;
   std::vector<double> step_us;
   cv::Mat left, right;
   int initial = 0;
+  int redetections = 0;
   for (size_t i = 0; i < n; ++i) {
     long frame = static_cast<long>(i);
     double t = static_cast<double>(i) / a.fps;
@@ -194,6 +205,14 @@ int runTrack(const TrackArgs& a) {
       tracker.track(left, right);
       step_us.push_back(
           std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count());
+      if (tracker.needsRedetection()) {
+        // Too few left (a long occlusion, the surface moved out of the ROI): detect again.
+        auto ok = tracker.redetect(left, right);
+        if (!ok) return error("track", ok.error().message);
+        ++redetections;
+        if (!a.quiet)
+          fmt::print(stderr, "frame {}: too few features ok, re-detected {}\n", frame, *ok);
+      }
     }
     for (const vision::Feature& f : tracker.features()) {
       rows.push_back({frame, t, f.id, f.left[0], f.left[1], f.right[0], f.right[1], f.point[0],
@@ -214,11 +233,11 @@ int runTrack(const TrackArgs& a) {
   };
   fmt::print(
       "frames            {}\n"
-      "features          {} at frame 0, {} ok at the last frame\n"
+      "features          {} at frame 0, {} ok at the last frame, {} re-detections\n"
       "per-frame step    p50 {:.0f} us, p99 {:.0f} us, max {:.0f} us\n"
       "track written to  {}\n",
-      n, initial, tracker.okCount(), pct(0.5), pct(0.99), step_us.empty() ? 0.0 : step_us.back(),
-      a.out);
+      n, initial, tracker.okCount(), redetections, pct(0.5), pct(0.99),
+      step_us.empty() ? 0.0 : step_us.back(), a.out);
   return 0;
 }
 

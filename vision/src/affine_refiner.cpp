@@ -3,6 +3,8 @@
 #include <cmath>
 #include <opencv2/core.hpp>  // Matx::solve / inv (operations.hpp)
 
+#include "pulsetrack/vision/shift_kernel.hpp"
+
 namespace pulsetrack::vision {
 
 namespace {
@@ -137,6 +139,7 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
       for (size_t i = 0; i < 6; ++i) b[static_cast<int>(i)] += sd_[k][i] * e;
     }
     res.rms = std::sqrt(sse / kAffinePixels);
+    res.ncc = 1.0 - sse / (2.0 * kAffinePixels * spread_ * spread_);
     const cv::Vec<double, 6> dp = h_inv_ * b;
     // Inverse composition: W <- W o W(dp)^-1, with W(dp) = [I + D | t].
     const cv::Matx22d d(1.0 + dp[0], dp[2], dp[1], 1.0 + dp[3]);
@@ -161,6 +164,164 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
     }
   }
   return res;
+}
+
+namespace {
+
+// The side x side patch around `centre` (the template, or with one pixel of margin for its
+// gradients), by separable Catmull-Rom: a horizontal pass over the rows the vertical pass
+// needs, then the vertical pass. False when a tap would leave the image.
+constexpr int kShiftSide = kAffineSide + 2;
+constexpr int kShiftHalf = kShiftSide / 2;
+
+template <int kSideT>
+bool shiftedPatch(const uint8_t* image, size_t stride, int width, int height,
+                  const cv::Vec2d& centre, float* out) noexcept {
+  constexpr int kHalfT = kSideT / 2;
+  constexpr size_t kS = kSideT;
+  const double fx0 = std::floor(centre[0]), fy0 = std::floor(centre[1]);
+  if (!(std::abs(fx0) < 1e6) || !(std::abs(fy0) < 1e6)) return false;
+  const int x0 = static_cast<int>(fx0) - kHalfT - 1;  // first tap column
+  const int y0 = static_cast<int>(fy0) - kHalfT - 1;
+  if (x0 < 0 || y0 < 0 || x0 + kSideT + 3 > width || y0 + kSideT + 3 > height) return false;
+  float wx[4], wy[4];
+  catmullRom(static_cast<float>(centre[0] - fx0), wx);
+  catmullRom(static_cast<float>(centre[1] - fy0), wy);
+  // (side + 3) rows x side columns; every element is written before it is read.
+  std::array<float, (kSideT + 3) * kS> rows;  // NOLINT(cppcoreguidelines-pro-type-member-init)
+  for (size_t r = 0; r < kS + 3; ++r) {
+    const uint8_t* p = image + (static_cast<size_t>(y0) + r) * stride + static_cast<size_t>(x0);
+    float* o = rows.data() + r * kS;
+    for (size_t c = 0; c < kS; ++c) {
+      o[c] = wx[0] * static_cast<float>(p[c]) + wx[1] * static_cast<float>(p[c + 1]) +
+             wx[2] * static_cast<float>(p[c + 2]) + wx[3] * static_cast<float>(p[c + 3]);
+    }
+  }
+  for (size_t r = 0; r < kS; ++r) {
+    const float* a = rows.data() + r * kS;
+    float* o = out + r * kS;
+    for (size_t c = 0; c < kS; ++c)
+      o[c] = wy[0] * a[c] + wy[1] * a[kS + c] + wy[2] * a[2 * kS + c] + wy[3] * a[3 * kS + c];
+  }
+  return true;
+}
+
+}  // namespace
+
+bool ShiftTemplate::set(const uint8_t* image, size_t stride, int width, int height,
+                        const cv::Vec2d& centre) noexcept {
+  std::array<float, kShiftSide * kShiftSide> big{};
+  if (!shiftedPatch<kShiftSide>(image, stride, width, height, centre, big.data())) return false;
+  cv::Matx22d h = cv::Matx22d::zeros();
+  t_.fill(0.0F);
+  gx_.fill(0.0F);
+  gy_.fill(0.0F);
+  sum_t_ = sum_tt_ = sum_gx_ = sum_gy_ = sum_gxt_ = sum_gyt_ = 0.0;
+  for (int y = 0; y < kAffineSide; ++y) {
+    for (int x = 0; x < kAffineSide; ++x) {
+      const auto at = [&](int dx, int dy) {
+        return big[static_cast<size_t>((y + 1 + dy) * kShiftSide + x + 1 + dx)];
+      };
+      const size_t k = static_cast<size_t>(y * kCols + x);
+      t_[k] = at(0, 0);
+      gx_[k] = 0.5F * (at(1, 0) - at(-1, 0));
+      gy_[k] = 0.5F * (at(0, 1) - at(0, -1));
+      h(0, 0) += double(gx_[k]) * gx_[k];
+      h(0, 1) += double(gx_[k]) * gy_[k];
+      h(1, 1) += double(gy_[k]) * gy_[k];
+      sum_t_ += t_[k];
+      sum_tt_ += double(t_[k]) * t_[k];
+      sum_gx_ += gx_[k];
+      sum_gy_ += gy_[k];
+      sum_gxt_ += double(gx_[k]) * t_[k];
+      sum_gyt_ += double(gy_[k]) * t_[k];
+    }
+  }
+  for (int c = 0; c < kCols; ++c) mask_[static_cast<size_t>(c)] = c < kAffineSide ? 1.0F : 0.0F;
+  h(1, 0) = h(0, 1);
+  mean_ = sum_t_ / kAffinePixels;
+  spread_ = std::sqrt(std::max(0.0, sum_tt_ / kAffinePixels - mean_ * mean_));
+  if (spread_ < 1.0) return false;
+  bool ok = false;
+  h_inv_ = h.inv(cv::DECOMP_CHOLESKY, &ok);
+  return ok;
+}
+
+AffineResult ShiftTemplate::refine(const uint8_t* image, size_t stride, int width, int height,
+                                   const cv::Vec2d& start, int max_iterations, double epsilon_px,
+                                   bool scalar) const noexcept {
+  static_assert(kCols == kShiftCols && kAffineSide == kShiftRows);
+  AffineResult res;
+  res.warp.centre = start;
+  ShiftKernelInput in;
+  in.stride = stride;
+  in.t = t_.data();
+  in.gx = gx_.data();
+  in.gy = gy_.data();
+  in.mask = mask_.data();
+  constexpr double n = kAffinePixels;
+  for (int it = 0; it < max_iterations; ++it) {
+    res.iterations = it + 1;
+    const cv::Vec2d& c = res.warp.centre;
+    const double fx0 = std::floor(c[0]), fy0 = std::floor(c[1]);
+    if (!(std::abs(fx0) < 1e6) || !(std::abs(fy0) < 1e6)) return res;
+    const int x0 = static_cast<int>(fx0) - kAffineHalf - 1;  // first tap
+    const int y0 = static_cast<int>(fy0) - kAffineHalf - 1;
+    if (x0 < 0 || y0 < 0 || x0 + kCols + 3 > width || y0 + kAffineSide + 3 > height) return res;
+    in.image = image + static_cast<size_t>(y0) * stride + static_cast<size_t>(x0);
+    catmullRom(static_cast<float>(c[0] - fx0), in.wx);
+    catmullRom(static_cast<float>(c[1] - fy0), in.wy);
+    ShiftSums s;
+    if (scalar) {
+      shiftSumsScalar(in, s);
+    } else {
+      shiftSums(in, s);
+    }
+    const double mean = s.p / n;
+    const double var = s.pp / n - mean * mean;
+    if (!(var > 1e-6)) return res;
+    // The patch normalized to the template's mean and spread: g p + o.
+    const double g = spread_ / std::sqrt(var);
+    const double o = mean_ - g * mean;
+    const double bx = g * s.gxp + o * sum_gx_ - sum_gxt_;
+    const double by = g * s.gyp + o * sum_gy_ - sum_gyt_;
+    const double sse = std::max(0.0, g * g * s.pp + 2.0 * g * o * s.p - 2.0 * g * s.tp + n * o * o -
+                                         2.0 * o * sum_t_ + sum_tt_);
+    res.rms = std::sqrt(sse / n);
+    res.ncc = 1.0 - sse / (2.0 * n * spread_ * spread_);
+    const cv::Vec2d dp = h_inv_ * cv::Vec2d(bx, by);
+    res.warp.centre -= dp;  // inverse composition of a translation
+    if (dp.dot(dp) < epsilon_px * epsilon_px) {
+      res.converged = true;
+      break;
+    }
+  }
+  return res;
+}
+
+void shiftSumsScalar(const ShiftKernelInput& in, ShiftSums& out) noexcept {
+  float h[kShiftRows + 3][kShiftCols];
+  for (int r = 0; r < kShiftRows + 3; ++r) {
+    const uint8_t* row = in.image + static_cast<size_t>(r) * in.stride;
+    for (int c = 0; c < kShiftCols; ++c) {
+      h[r][c] = in.wx[0] * float(row[c]) + in.wx[1] * float(row[c + 1]) +
+                in.wx[2] * float(row[c + 2]) + in.wx[3] * float(row[c + 3]);
+    }
+  }
+  out = {};
+  for (int r = 0; r < kShiftRows; ++r) {
+    for (int c = 0; c < kShiftCols; ++c) {
+      const size_t k = static_cast<size_t>(r * kShiftCols + c);
+      const float p = (in.wy[0] * h[r][c] + in.wy[1] * h[r + 1][c] + in.wy[2] * h[r + 2][c] +
+                       in.wy[3] * h[r + 3][c]) *
+                      in.mask[c];
+      out.p += p;
+      out.pp += p * p;
+      out.gxp += in.gx[k] * p;
+      out.gyp += in.gy[k] * p;
+      out.tp += in.t[k] * p;
+    }
+  }
 }
 
 }  // namespace pulsetrack::vision

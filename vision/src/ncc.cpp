@@ -1,6 +1,7 @@
 #include "pulsetrack/vision/ncc.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 
 namespace pulsetrack::vision {
@@ -83,54 +84,98 @@ SubPixel quadraticPeak(const float s[9]) noexcept {
   return p;
 }
 
-double normalizedMutualInformation(const uint8_t* a, size_t stride_a, const uint8_t* b,
-                                   size_t stride_b, int w, int h, int bins) noexcept {
-  bins = std::clamp(bins, 2, 32);
-  int amin = 255, amax = 0, bmin = 255, bmax = 0;
+namespace {
+
+// c * log(c) for the counts of a patch of up to kTablePixels pixels, filled before main(): the
+// entropies then take no log() per bin on the per-frame path.
+constexpr int kTablePixels = 4096;
+const std::array<double, kTablePixels + 1> kCLogC = [] {
+  std::array<double, kTablePixels + 1> t{};
+  for (int c = 1; c <= kTablePixels; ++c) t[static_cast<size_t>(c)] = c * std::log(double(c));
+  return t;
+}();
+
+inline double cLogC(int c) noexcept {
+  return c <= kTablePixels ? kCLogC[static_cast<size_t>(c)] : c * std::log(double(c));
+}
+
+}  // namespace
+
+namespace {
+
+// The bins of a patch over its own range: floor((v - min) * bins / span) by a multiplication
+// (a division per pixel cost more than the rest of NMI); the epsilon keeps exact quotients
+// from rounding down (a quotient's fraction is a multiple of 1 / span >= 1 / 256). False
+// when the patch is flat.
+bool binPatch(const uint8_t* p, size_t stride, int w, int h, int bins, uint8_t* out) noexcept {
+  int lo = 255, hi = 0;
   for (int y = 0; y < h; ++y) {
+    const uint8_t* row = p + static_cast<size_t>(y) * stride;
     for (int x = 0; x < w; ++x) {
-      const int va = a[static_cast<size_t>(y) * stride_a + static_cast<size_t>(x)];
-      const int vb = b[static_cast<size_t>(y) * stride_b + static_cast<size_t>(x)];
-      amin = std::min(amin, va);
-      amax = std::max(amax, va);
-      bmin = std::min(bmin, vb);
-      bmax = std::max(bmax, vb);
+      lo = std::min(lo, int{row[x]});
+      hi = std::max(hi, int{row[x]});
     }
   }
-  if (amax == amin || bmax == bmin) return 0.0;
-  std::array<int, 32 * 32> joint{};
-  const auto bin = [bins](int v, int lo, int hi) {
-    return std::min(bins - 1, (v - lo) * bins / (hi - lo + 1));
-  };
+  if (hi == lo) return false;
+  const float k = static_cast<float>(bins) / static_cast<float>(hi - lo + 1);
+  constexpr float kEps = 1e-4F;
   for (int y = 0; y < h; ++y) {
+    const uint8_t* row = p + static_cast<size_t>(y) * stride;
     for (int x = 0; x < w; ++x) {
-      const int ia = bin(a[static_cast<size_t>(y) * stride_a + static_cast<size_t>(x)], amin, amax);
-      const int ib = bin(b[static_cast<size_t>(y) * stride_b + static_cast<size_t>(x)], bmin, bmax);
-      ++joint[static_cast<size_t>(ia) * 32 + static_cast<size_t>(ib)];
+      *out++ = static_cast<uint8_t>(static_cast<float>(row[x] - lo) * k + kEps);
     }
   }
-  const double n = static_cast<double>(w) * h;
-  std::array<double, 32> pa{}, pb{};
-  double hab = 0.0;
-  for (int i = 0; i < bins; ++i) {
-    for (int j = 0; j < bins; ++j) {
-      const int c = joint[static_cast<size_t>(i) * 32 + static_cast<size_t>(j)];
-      if (c == 0) continue;
-      const double p = c / n;
-      pa[static_cast<size_t>(i)] += p;
-      pb[static_cast<size_t>(j)] += p;
-      hab -= p * std::log(p);
-    }
+  return true;
+}
+
+}  // namespace
+
+bool NmiTemplate::set(const uint8_t* a, size_t stride, int w, int h, int bins) noexcept {
+  flat_ = true;
+  if (w <= 0 || h <= 0 || w > kMaxTemplateSize || h > kMaxTemplateSize) return false;
+  w_ = w;
+  h_ = h;
+  bins_ = std::clamp(bins, 2, 32);
+  if (!binPatch(a, stride, w, h, bins_, bin_.data())) return false;
+  count_.fill(0);
+  for (int k = 0; k < w * h; ++k) ++count_[bin_[static_cast<size_t>(k)]];
+  sum_clogc_ = 0.0;
+  for (int i = 0; i < bins_; ++i) sum_clogc_ += cLogC(count_[static_cast<size_t>(i)]);
+  flat_ = false;
+  return true;
+}
+
+double NmiTemplate::score(const uint8_t* b, size_t stride) const noexcept {
+  if (flat_) return 0.0;
+  std::array<uint8_t, kMaxTemplateSize * kMaxTemplateSize> bb;  // NOLINT: written before read
+  if (!binPatch(b, stride, w_, h_, bins_, bb.data())) return 0.0;
+  // Only the bins x bins corner is used and cleared.
+  std::array<uint16_t, 32 * 32> joint;  // NOLINT(cppcoreguidelines-pro-type-member-init)
+  std::fill_n(joint.begin(), bins_ * bins_, uint16_t{0});
+  std::array<int, 32> cb{};
+  const int n = w_ * h_;
+  for (int k = 0; k < n; ++k) {
+    const size_t ib = bb[static_cast<size_t>(k)];
+    ++joint[bin_[static_cast<size_t>(k)] * static_cast<size_t>(bins_) + ib];
+    ++cb[ib];
   }
-  double ha = 0.0, hb = 0.0;
-  for (int i = 0; i < bins; ++i) {
-    if (pa[static_cast<size_t>(i)] > 0)
-      ha -= pa[static_cast<size_t>(i)] * std::log(pa[static_cast<size_t>(i)]);
-    if (pb[static_cast<size_t>(i)] > 0)
-      hb -= pb[static_cast<size_t>(i)] * std::log(pb[static_cast<size_t>(i)]);
-  }
+  // H = log n - (1/n) sum c log c over the bins' counts c.
+  double sab = 0.0, sb = 0.0;
+  for (int i = 0; i < bins_ * bins_; ++i) sab += cLogC(joint[static_cast<size_t>(i)]);
+  for (int i = 0; i < bins_; ++i) sb += cLogC(cb[static_cast<size_t>(i)]);
+  const double log_n = cLogC(n) / n;
+  const double hab = log_n - sab / n;
+  const double ha = log_n - sum_clogc_ / n;
+  const double hb = log_n - sb / n;
   if (ha + hb <= 0.0) return 0.0;
   return std::clamp(2.0 * (ha + hb - hab) / (ha + hb), 0.0, 1.0);
+}
+
+double normalizedMutualInformation(const uint8_t* a, size_t stride_a, const uint8_t* b,
+                                   size_t stride_b, int w, int h, int bins) noexcept {
+  NmiTemplate t;
+  if (!t.set(a, stride_a, w, h, bins)) return 0.0;
+  return t.score(b, stride_b);
 }
 
 }  // namespace pulsetrack::vision

@@ -4,6 +4,8 @@
 #include <hwy/foreach_target.h>  // IWYU pragma: keep
 #include <hwy/highway.h>
 
+#include <algorithm>
+
 #include "pulsetrack/vision/ncc.hpp"
 
 HWY_BEFORE_NAMESPACE();
@@ -54,6 +56,23 @@ void NccScoresImpl(const NccTemplate& t, const uint8_t* region, size_t stride, i
   }
 }
 
+uint8_t RegionMaxImpl(const uint8_t* p, size_t stride, int w, int h) {
+  const hn::CappedTag<uint8_t, 16> d;
+  const int lanes = static_cast<int>(hn::Lanes(d));
+  auto m = hn::Zero(d);
+  uint8_t tail = 0;
+  for (int y = 0; y < h; ++y, p += stride) {
+    if (w < lanes) {
+      for (int x = 0; x < w; ++x) tail = std::max(tail, p[x]);
+      continue;
+    }
+    int x = 0;
+    for (; x + lanes <= w; x += lanes) m = hn::Max(m, hn::LoadU(d, p + x));
+    if (x < w) m = hn::Max(m, hn::LoadU(d, p + w - lanes));  // overlapping the last vector
+  }
+  return std::max(tail, hn::GetLane(hn::MaxOfLanes(d, m)));
+}
+
 }  // namespace pulsetrack::vision::HWY_NAMESPACE
 HWY_AFTER_NAMESPACE();
 
@@ -65,6 +84,13 @@ HWY_EXPORT(NccScoresImpl);
 void nccScores(const NccTemplate& t, const uint8_t* region, size_t stride, int nx, int ny,
                float* scores) noexcept {
   HWY_DYNAMIC_DISPATCH(NccScoresImpl)(t, region, stride, nx, ny, scores);
+}
+
+HWY_EXPORT(RegionMaxImpl);
+
+uint8_t regionMax(const uint8_t* p, size_t stride, int w, int h) noexcept {
+  if (w <= 0 || h <= 0) return 0;
+  return HWY_DYNAMIC_DISPATCH(RegionMaxImpl)(p, stride, w, h);
 }
 
 const char* nccTarget() noexcept {

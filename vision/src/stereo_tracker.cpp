@@ -93,13 +93,10 @@ int neighbourhoodMax(const cv::Mat& img, const cv::Vec2d& centre, int margin) no
   const int cx = static_cast<int>(std::lround(centre[0]));
   const int cy = static_cast<int>(std::lround(centre[1]));
   const int r = kHalf + margin;
-  int m = 0;
-  for (int y = std::max(0, cy - r); y <= std::min(img.rows - 1, cy + r); ++y) {
-    const uint8_t* row = img.ptr<uint8_t>(y);
-    for (int x = std::max(0, cx - r); x <= std::min(img.cols - 1, cx + r); ++x)
-      m = std::max(m, static_cast<int>(row[x]));
-  }
-  return m;
+  const int x0 = std::max(0, cx - r), x1 = std::min(img.cols - 1, cx + r);
+  const int y0 = std::max(0, cy - r), y1 = std::min(img.rows - 1, cy + r);
+  if (x1 < x0 || y1 < y0) return 0;
+  return regionMax(img.ptr<uint8_t>(y0) + x0, img.step, x1 - x0 + 1, y1 - y0 + 1);
 }
 
 bool patchAt(const cv::Mat& img, cv::Vec2d centre, const uint8_t*& top_left) noexcept {
@@ -125,30 +122,7 @@ int StereoTracker::okCount() const noexcept {
   }));
 }
 
-Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
-                                      double depth_tolerance_mm) {
-  const cv::Size size = rig_.left.imageSize();
-  for (const cv::Mat* img : {&left, &right}) {
-    if (img->type() != CV_8UC1 || img->size() != size) {
-      return fail(
-          fmt::format("tracker: images must be {}x{} 8-bit grey (the rig's), got {}x{} type {}",
-                      size.width, size.height, img->cols, img->rows, img->type()));
-    }
-  }
-  const cv::Rect frame(0, 0, size.width, size.height);
-  for (const auto& [name, r] : {std::pair{"left", roi.left}, std::pair{"right", roi.right}}) {
-    if (r.width < 2 * kSide || r.height < 2 * kSide || (r & frame) != r) {
-      return fail(fmt::format(
-          "tracker: {} ROI {},{},{},{} must lie inside the {}x{} image and be at least {} px "
-          "on each side",
-          name, r.x, r.y, r.width, r.height, size.width, size.height, 2 * kSide));
-    }
-  }
-  if (!(depth_tolerance_mm > 0.0))
-    return fail("tracker: the depth tolerance must be positive (mm)");
-
-  // Section 2.B, detection on the left ROI.
-  const cv::Mat img = left(roi.left);
+std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img) const {
   cv::Mat specular = img >= config_.specular_threshold;
   const int sd = config_.specular_dilate_px;
   cv::dilate(specular, specular,
@@ -217,6 +191,94 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     }
     if (static_cast<int>(chosen.size()) >= config_.max_features) break;
   }
+  std::vector<cv::Point2d> out;
+  for (const cv::Point& p : chosen) out.emplace_back(p.x, p.y);
+  return out;
+}
+
+std::vector<cv::Point2d> StereoTracker::detectDarkBlobs(const cv::Mat& img) const {
+  // Small dark blobs (the validation plate's 0.5 mm conical holes): the local mean over the
+  // template minus the image smoothed at the blob's scale is large on a blob and small on
+  // texture, edges and large holes; its local maxima are the candidates, strongest first.
+  const double sigma = config_.blob_radius_px / 2.0;
+  cv::Mat f, smooth, mean;
+  img.convertTo(f, CV_32F);
+  cv::GaussianBlur(f, smooth, {0, 0}, sigma, sigma, cv::BORDER_REPLICATE);
+  cv::blur(f, mean, {kSide, kSide}, {-1, -1}, cv::BORDER_REPLICATE);
+  const cv::Mat response = mean - smooth;
+  cv::Mat dilated;
+  cv::dilate(response, dilated, cv::Mat(), {-1, -1}, std::max(1, int(config_.blob_radius_px)));
+  struct Blob {
+    cv::Point p;
+    float response;
+  };
+  std::vector<Blob> blobs;
+  const int margin = kHalf + config_.video_search_px + 2;
+  for (int y = margin; y < img.rows - margin; ++y) {
+    for (int x = margin; x < img.cols - margin; ++x) {
+      const float r = response.at<float>(y, x);
+      if (r >= static_cast<float>(config_.blob_min_contrast) && r >= dilated.at<float>(y, x))
+        blobs.push_back({{x, y}, r});
+    }
+  }
+  std::sort(blobs.begin(), blobs.end(),
+            [](const Blob& a, const Blob& b) { return a.response > b.response; });
+  // Sub-pixel centre: the darkness-weighted centroid (local mean minus the image, clipped at 0)
+  // within the blob's radius plus a pixel, iterated once about the new centre.
+  std::vector<cv::Point2d> out;
+  const int r = static_cast<int>(std::ceil(config_.blob_radius_px)) + 1;
+  for (const Blob& b : blobs) {
+    if (static_cast<int>(out.size()) >= config_.max_features) break;
+    cv::Point2d c(b.p.x, b.p.y);
+    for (int it = 0; it < 2; ++it) {
+      const int cx = static_cast<int>(std::lround(c.x)), cy = static_cast<int>(std::lround(c.y));
+      const float level = mean.at<float>(cy, cx);
+      double sw = 0, sx = 0, sy = 0;
+      for (int y = cy - r; y <= cy + r; ++y) {
+        for (int x = cx - r; x <= cx + r; ++x) {
+          const double w = std::max(0.0F, level - f.at<float>(y, x));
+          sw += w;
+          sx += w * x;
+          sy += w * y;
+        }
+      }
+      if (sw <= 0) break;
+      c = {sx / sw, sy / sw};
+    }
+    const bool crowded = std::any_of(out.begin(), out.end(), [&](const cv::Point2d& o) {
+      return std::hypot(o.x - c.x, o.y - c.y) < config_.min_distance_px;
+    });
+    if (!crowded) out.push_back(c);
+  }
+  return out;
+}
+
+Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
+                                      double depth_tolerance_mm) {
+  const cv::Size size = rig_.left.imageSize();
+  for (const cv::Mat* img : {&left, &right}) {
+    if (img->type() != CV_8UC1 || img->size() != size) {
+      return fail(
+          fmt::format("tracker: images must be {}x{} 8-bit grey (the rig's), got {}x{} type {}",
+                      size.width, size.height, img->cols, img->rows, img->type()));
+    }
+  }
+  const cv::Rect frame(0, 0, size.width, size.height);
+  for (const auto& [name, r] : {std::pair{"left", roi.left}, std::pair{"right", roi.right}}) {
+    if (r.width < 2 * kSide || r.height < 2 * kSide || (r & frame) != r) {
+      return fail(fmt::format(
+          "tracker: {} ROI {},{},{},{} must lie inside the {}x{} image and be at least {} px "
+          "on each side",
+          name, r.x, r.y, r.width, r.height, size.width, size.height, 2 * kSide));
+    }
+  }
+  if (!(depth_tolerance_mm > 0.0))
+    return fail("tracker: the depth tolerance must be positive (mm)");
+
+  // Section 2.B, detection on the left ROI.
+  const cv::Mat img = left(roi.left);
+  const std::vector<cv::Point2d> chosen =
+      config_.detector == Detector::kDarkBlobs ? detectDarkBlobs(img) : detectHarris(img);
 
   // The stereo search box: triangulate the ROI corners pairwise, add and subtract the depth
   // tolerance, reproject the eight corners; their left-to-right offsets bound the search.
@@ -260,10 +322,12 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
   std::vector<size_t> candidate_of_feature;
   features_.clear();
   states_.clear();
-  for (const cv::Point& p : chosen) {
-    const cv::Point pl(p.x + l.x, p.y + l.y);
+  for (const cv::Point2d& p : chosen) {
+    // The template is cut at the nearest pixel; the refinements work from the sub-pixel point.
+    const cv::Point pl(static_cast<int>(std::lround(p.x)) + l.x,
+                       static_cast<int>(std::lround(p.y)) + l.y);
     StereoCandidate c;
-    c.left = {double(pl.x), double(pl.y)};
+    c.left = {p.x + l.x, p.y + l.y};
     State s;
     if (!s.ncc[0].set(left.ptr<uint8_t>(pl.y - kHalf) + pl.x - kHalf, left.step, kSide, kSide))
       continue;
@@ -283,14 +347,25 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     // surface are foreshortened differently, which biases the NCC peak.
     // It must converge: where it does not, the NCC peak itself was 1-2 px off in every case
     // measured (tests/vision/stereo_tracker_test.cpp), so the candidate is dropped.
-    s.warp[0] = {c.left, cv::Matx22d::eye()};
-    bool refined = !config_.affine_refinement;
-    if (config_.affine_refinement &&
-        s.affine[0].set(left.data, left.step, left.cols, left.rows, s.warp[0])) {
-      const AffineResult ar = s.affine[0].refine(right.data, right.step, right.cols, right.rows,
-                                                 {c.right, cv::Matx22d::eye()});
+    bool refined = !config_.refinement;
+    if (config_.refinement) {
+      // Blobs are round: an affine warp's shape is unobservable on them (it does not converge)
+      // and foreshortening does not move their centre; they are refined in translation.
+      AffineResult ar;
+      if (config_.detector == Detector::kDarkBlobs) {
+        ShiftTemplate stereo;
+        if (stereo.set(left.data, left.step, left.cols, left.rows, c.left))
+          ar = stereo.refine(right.data, right.step, right.cols, right.rows, c.right);
+      } else {
+        AffineTemplate stereo;
+        if (stereo.set(left.data, left.step, left.cols, left.rows, {c.left, cv::Matx22d::eye()})) {
+          ar = stereo.refine(right.data, right.step, right.cols, right.rows,
+                             {c.right, cv::Matx22d::eye()});
+        }
+      }
       if (ar.converged && cv::norm(ar.warp.centre - c.right) < 1.5) {
         c.right = ar.warp.centre;
+        c.ncc = ar.ncc;
         refined = true;
       }
     }
@@ -309,7 +384,9 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     c.point = t.point;
     if (!refined) {
       c.status = FeatureStatus::kLost;
-    } else if (c.ncc < config_.min_ncc || c.nmi < config_.min_nmi || glint) {
+    } else if (c.ncc < (config_.refinement ? std::max(config_.min_ncc, config_.min_stereo_ncc)
+                                           : config_.min_ncc) ||
+               c.nmi < config_.min_nmi || glint) {
       c.status = FeatureStatus::kOccluded;
     } else if (c.epipolar_px > config_.max_epipolar_px) {
       c.status = FeatureStatus::kOutlierEpipolar;
@@ -326,19 +403,21 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
         !s.ncc[1].set(right.ptr<uint8_t>(pr.y - kHalf) + pr.x - kHalf, right.step, kSide, kSide)) {
       continue;
     }
-    s.warp[1] = {c.right, cv::Matx22d::eye()};
-    if (!s.affine[1].set(right.data, right.step, right.cols, right.rows, s.warp[1])) continue;
-    // The frame-0 patches as 8-bit, once: track() compares every match with them (NMI).
-    for (int cam = 0; cam < 2; ++cam) {
-      const cv::Point at = cam == 0 ? pl : pr;
-      const cv::Mat& frame0 = cam == 0 ? left : right;
-      for (int y = 0; y < kSide; ++y) {
-        const uint8_t* row = frame0.ptr<uint8_t>(at.y - kHalf + y) + at.x - kHalf;
-        std::copy(row, row + kSide, s.pixels[cam].begin() + y * kSide);
-      }
+    if (!s.shift[0].set(left.data, left.step, left.cols, left.rows, c.left) ||
+        !s.shift[1].set(right.data, right.step, right.cols, right.rows, c.right)) {
+      continue;
     }
+    // The frame-0 patches' NMI bins, once: track() compares every match with them.
+    const uint8_t* t0 = nullptr;
+    const uint8_t* t1 = nullptr;
+    if (!patchAt(left, c.left, t0) || !patchAt(right, c.right, t1) ||
+        !s.nmi[0].set(t0, left.step, kSide, kSide) || !s.nmi[1].set(t1, right.step, kSide, kSide)) {
+      continue;
+    }
+    s.video[0] = c.left;
+    s.video[1] = c.right;
     Feature f;
-    f.id = static_cast<int>(features_.size());
+    f.id = next_id_ + static_cast<int>(features_.size());
     f.left = c.left;
     f.right = c.right;
     f.point = f.point0 = c.point;
@@ -354,19 +433,27 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
   // Report the surface gate's verdicts on the candidates too.
   for (size_t i = 0; i < features_.size(); ++i)
     candidates_[candidate_of_feature[i]].status = features_[i].status;
-  return okCount();
+  next_id_ += static_cast<int>(features_.size());
+  roi_ = roi;
+  depth_tolerance_mm_ = depth_tolerance_mm;
+  detected_ok_ = okCount();
+  return detected_ok_;
 }
 
-bool StereoTracker::trackCamera(int cam, const cv::Mat& img, Feature& f, State& s, double& ncc,
-                                double& nmi) noexcept {
+Result<int> StereoTracker::redetect(const cv::Mat& left, const cv::Mat& right) {
+  if (depth_tolerance_mm_ <= 0.0) return fail("tracker: redetect() before initialize()");
+  return initialize(left, right, roi_, depth_tolerance_mm_);
+}
+
+bool StereoTracker::searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s,
+                                 cv::Vec2d& pos, double& ncc) noexcept {
   const int radius = config_.video_search_px;
   const int side = 2 * radius + 1;
-  const cv::Vec2d last = cam == 0 ? f.left : f.right;
   const int cx = static_cast<int>(std::lround(last[0]));
   const int cy = static_cast<int>(std::lround(last[1]));
-  // Hill-climb in 3x3 steps from the last position (frame-to-frame motion is mostly under a
-  // pixel: 9-18 placements instead of (2R+1)^2); the whole window only when the climb ends on a
-  // poor score (re-acquisition after an occlusion) or leaves the window.
+  // Hill-climb in 3x3 steps from the last position (9-18 placements instead of (2R+1)^2); the
+  // whole window only when the climb ends on a poor score (re-acquisition after an occlusion)
+  // or leaves the window.
   int px = cx, py = cy;
   Peak peak;
   bool climbed = false;
@@ -399,22 +486,43 @@ bool StereoTracker::trackCamera(int cam, const cv::Mat& img, Feature& f, State& 
     py = cy - radius + peak.j;
   }
   ncc = peak.score;
-  cv::Vec2d pos(px + peak.sub.dx, py + peak.sub.dy);
+  pos = {px + peak.sub.dx, py + peak.sub.dy};
+  return true;
+}
+
+bool StereoTracker::trackCamera(int cam, const cv::Mat& img, State& s, double& ncc,
+                                double& nmi) noexcept {
+  const cv::Vec2d last = s.video[cam];
+  cv::Vec2d pos = last;
+  bool found = false;
+  if (config_.refinement) {
+    // Frame-to-frame motion is mostly under a pixel, inside the translation refinement's basin:
+    // refine straight from the last position, and search with NCC only when that fails (a
+    // jump, a re-acquisition after an occlusion, a poor match).
+    const AffineResult ar = s.shift[cam].refine(img.data, img.step, img.cols, img.rows, last);
+    if (ar.converged && ar.ncc >= config_.min_ncc &&
+        cv::norm(ar.warp.centre - last) <= config_.video_search_px) {
+      pos = ar.warp.centre;
+      ncc = ar.ncc;
+      found = true;
+    }
+  }
+  if (!found) {
+    if (!searchCamera(cam, img, last, s, pos, ncc)) return false;
+    if (config_.refinement) {
+      const AffineResult ar = s.shift[cam].refine(img.data, img.step, img.cols, img.rows, pos);
+      if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return false;
+      pos = ar.warp.centre;
+    }
+  }
   const uint8_t* patch = nullptr;
   if (!patchAt(img, pos, patch)) return false;
   // NMI between the frame-0 template and the patch at the match.
-  nmi = normalizedMutualInformation(s.pixels[cam].data(), kSide, patch, img.step, kSide, kSide);
+  nmi = s.nmi[cam].score(patch, img.step);
   // A glint over the feature (they move as the surface breathes) gates this frame.
   if (neighbourhoodMax(img, pos, config_.specular_margin_px) >= config_.specular_threshold)
     nmi = 0.0;
-  if (config_.affine_refinement) {
-    const AffineResult ar =
-        s.affine[cam].refine(img.data, img.step, img.cols, img.rows, {pos, s.warp[cam].a});
-    if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return false;
-    pos = ar.warp.centre;
-    if (ncc >= config_.min_ncc && nmi >= config_.min_nmi) s.warp[cam] = ar.warp;
-  }
-  (cam == 0 ? f.left : f.right) = pos;
+  s.video[cam] = pos;
   return true;
 }
 
@@ -422,23 +530,29 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
   for (size_t i = 0; i < features_.size(); ++i) {
     Feature& f = features_[i];
     State& s = states_[i];
-    const cv::Vec2d prev_left = f.left, prev_right = f.right;
+    const cv::Vec2d prev_left = s.video[0], prev_right = s.video[1];
     double ncc_l = 0, ncc_r = 0, nmi_l = 0, nmi_r = 0;
-    const bool ok_l = trackCamera(0, left, f, s, ncc_l, nmi_l);
-    const bool ok_r = trackCamera(1, right, f, s, ncc_r, nmi_r);
+    const bool ok_l = trackCamera(0, left, s, ncc_l, nmi_l);
+    const bool ok_r = trackCamera(1, right, s, ncc_r, nmi_r);
     f.ncc = std::min(ncc_l, ncc_r);
     f.nmi = std::min(nmi_l, nmi_r);
     const auto keep_last = [&](FeatureStatus why) {
       // An occluded or lost feature stays where it was last seen, so it is found again there.
-      f.left = prev_left;
-      f.right = prev_right;
+      s.video[0] = prev_left;
+      s.video[1] = prev_right;
       f.status = why;
     };
+    f.left = s.video[0];
+    f.right = s.video[1];
     if (!ok_l || !ok_r) {
       keep_last(FeatureStatus::kLost);
       continue;
     }
-    if (f.ncc < config_.min_ncc || f.nmi < config_.min_nmi) {
+    const auto dropped = [&](int cam, double ncc) {
+      return s.ncc_level[cam] > 0.0 && ncc < s.ncc_level[cam] - config_.max_ncc_drop;
+    };
+    if (f.ncc < config_.min_ncc || f.nmi < config_.min_nmi || dropped(0, ncc_l) ||
+        dropped(1, ncc_r)) {
       keep_last(FeatureStatus::kOccluded);
       continue;
     }
@@ -454,6 +568,11 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
     }
     f.point = t.point;
     f.status = FeatureStatus::kOk;
+    // The NCC level follows slow changes (illumination, deformation) over ~20 frames.
+    for (int cam = 0; cam < 2; ++cam) {
+      const double ncc = cam == 0 ? ncc_l : ncc_r;
+      s.ncc_level[cam] = s.ncc_level[cam] > 0.0 ? 0.95 * s.ncc_level[cam] + 0.05 * ncc : ncc;
+    }
   }
   surfaceGate();
 }

@@ -29,6 +29,9 @@ struct AffineWarp {
 struct AffineResult {
   AffineWarp warp;
   double rms = 0.0;  // residual after normalization, grey levels
+  // NCC of the warped patch with the template, from the same residual: for a patch normalized
+  // to the template's mean and spread s, sum(e^2) = 2 n s^2 (1 - NCC).
+  double ncc = 0.0;
   int iterations = 0;
   bool converged = false;
 };
@@ -54,6 +57,34 @@ class AffineTemplate {
   cv::Matx<double, 6, 6> h_inv_;
   double mean_ = 0.0;
   double spread_ = 0.0;
+};
+
+// The same refinement for a pure translation, for video matching: a camera's frame-0
+// template against the same camera's later frames, where the surface's shape in the image
+// changes by far less than a pixel over the patch (it moves under a millimetre at 45 cm).
+// Every sample of a translated patch shares one fractional offset, so the bicubic warp is
+// separable (4 + 4 taps per pixel instead of 16), and the Hessian is 2x2.
+class ShiftTemplate {
+ public:
+  // The patch centred on `centre` (sub-pixel, bicubic). False near the border or when flat.
+  bool set(const uint8_t* image, size_t stride, int width, int height,
+           const cv::Vec2d& centre) noexcept;
+
+  // Refines `start`; stops when the update is below `epsilon_px`. `warp.a` stays identity.
+  // Each iteration is one pass of a Highway kernel (shift_kernel.hpp); `scalar` runs the
+  // reference kernel instead (tests).
+  [[nodiscard]] AffineResult refine(const uint8_t* image, size_t stride, int width, int height,
+                                    const cv::Vec2d& start, int max_iterations = 10,
+                                    double epsilon_px = 2e-3, bool scalar = false) const noexcept;
+
+ private:
+  static constexpr int kCols = 16;  // rows padded to 16 floats, the pad weighs nothing
+  static constexpr int kPadded = kAffineSide * kCols;
+  std::array<float, kPadded> t_{}, gx_{}, gy_{};
+  std::array<float, kCols> mask_{};
+  cv::Matx22d h_inv_;
+  double mean_ = 0.0, spread_ = 0.0;
+  double sum_t_ = 0.0, sum_tt_ = 0.0, sum_gx_ = 0.0, sum_gy_ = 0.0, sum_gxt_ = 0.0, sum_gyt_ = 0.0;
 };
 
 // Bicubic (Catmull-Rom) sample; false outside [1, w-2) x [1, h-2).

@@ -55,10 +55,29 @@ struct SubPixel {
 };
 SubPixel quadraticPeak(const float scores3x3[9]) noexcept;
 
+// The brightest pixel of a w x h region (Highway).
+uint8_t regionMax(const uint8_t* p, size_t stride, int w, int h) noexcept;
+
 // Normalized mutual information 2 I(A;B) / (H(A) + H(B)) in [0, 1] between two equally sized
 // 8-bit patches, with `bins` (<= 32) intensity bins over each patch's own range.
 double normalizedMutualInformation(const uint8_t* a, size_t stride_a, const uint8_t* b,
                                    size_t stride_b, int w, int h, int bins = 16) noexcept;
+
+// The same with patch A fixed (a feature's frame-0 template): its bins and entropy are
+// computed once, so each frame bins only B. At most kMaxTemplateSize^2 pixels.
+class NmiTemplate {
+ public:
+  // False when the patch is too large or flat (NMI is then 0 for every B).
+  bool set(const uint8_t* a, size_t stride, int w, int h, int bins = 16) noexcept;
+  [[nodiscard]] double score(const uint8_t* b, size_t stride) const noexcept;
+
+ private:
+  std::array<uint8_t, kMaxTemplateSize * kMaxTemplateSize> bin_{};
+  std::array<int, 32> count_{};
+  int w_ = 0, h_ = 0, bins_ = 16;
+  double sum_clogc_ = 0.0;  // sum over A's bins of c log c
+  bool flat_ = true;
+};
 
 inline float nccFromSums(int64_t n, int64_t st, int64_t stt, int64_t si, int64_t sii,
                          int64_t sti) noexcept {

@@ -9,7 +9,7 @@
 //   refinement for the two views' different foreshortening) -> gates -> triangulation.
 // track() (per frame: no allocation, no lock, no exception):
 //   each camera: NCC around the last position against the frame-0 template, quadratic peak,
-//   affine refinement against the frame-0 template (no drift) -> gates (NCC, NMI, epipolar,
+//   translation refinement against the frame-0 template (no drift) -> gates (NCC, NMI, epipolar,
 //   distance to a parabolic surface fitted to the cloud) -> LM triangulation.
 // A rejected feature keeps its id and its reason, and comes back when it passes again.
 
@@ -36,7 +36,15 @@ enum class FeatureStatus : uint8_t {
 };
 const char* toString(FeatureStatus s) noexcept;
 
+enum class Detector : uint8_t {
+  kHarris,     // the paper's: Harris corners on tissue (vessels)
+  kDarkBlobs,  // small dark blobs, centred (the validation plate's conical holes)
+};
+
 struct TrackerConfig {
+  Detector detector = Detector::kHarris;
+  double blob_radius_px = 3.0;      // kDarkBlobs: the blobs' radius in the image
+  double blob_min_contrast = 20.0;  // kDarkBlobs: grey levels below the local mean
   int max_features = 100;
   int grid_cols = 5;
   int grid_rows = 5;
@@ -53,11 +61,24 @@ struct TrackerConfig {
   int dark_delta = 2;            // grey levels below the local mean
   int video_search_px = 8;       // +- window around the last position
   double min_ncc = 0.75;
+  // A feature's video NCC is steady while it is seen (0.95-0.99 on tissue); a drop below its
+  // own running level by more than this is an occlusion starting (an instrument's edge), even
+  // above min_ncc.
+  double max_ncc_drop = 0.08;
+  // The stereo match after the affine refinement: the two views of a feature in sheen (below
+  // the glint threshold, but different per view) agree less than tissue does.
+  double min_stereo_ncc = 0.94;
   double min_nmi = 0.25;
   double max_epipolar_px = 1.0;
   double max_surface_mm = 2.0;      // distance to the fitted parabola
   double surface_mad_factor = 6.0;  // ... and at most this many MADs
-  bool affine_refinement = true;
+  // Sub-pixel refinement after the NCC peak: affine for the stereo match (the two views
+  // foreshorten the surface differently), translation for video matching (one camera's view
+  // of a patch barely changes shape). Off: the paper's quadratic NCC peak alone.
+  bool refinement = true;
+  // Re-detection is due when fewer than this fraction of the features found at the last
+  // detection are ok (needsRedetection(); the caller runs redetect() off the per-frame path).
+  double redetect_fraction = 0.5;
 };
 
 struct Roi {
@@ -93,6 +114,12 @@ class StereoTracker {
   // an ROI outside the image or images that are not 8-bit grey of the rig's size.
   Result<int> initialize(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
                          double depth_tolerance_mm);
+  // Detects again in the current pair with the last ROI and depth tolerance. The new features
+  // take new ids (never reused) and their reference position (point0) is where they are now.
+  Result<int> redetect(const cv::Mat& left, const cv::Mat& right);
+  [[nodiscard]] bool needsRedetection() const noexcept {
+    return detected_ok_ > 0 && okCount() < config_.redetect_fraction * detected_ok_;
+  }
   // The candidates of the last initialize(), rejected ones included.
   [[nodiscard]] const std::vector<StereoCandidate>& candidates() const { return candidates_; }
 
@@ -107,13 +134,18 @@ class StereoTracker {
  private:
   struct State {
     NccTemplate ncc[2];
-    AffineTemplate affine[2];
-    AffineWarp warp[2];                              // last good warp per camera
-    std::array<uint8_t, kAffinePixels> pixels[2]{};  // the frame-0 templates, for NMI
+    ShiftTemplate shift[2];
+    NmiTemplate nmi[2];                // the frame-0 templates, for NMI
+    double ncc_level[2] = {0.0, 0.0};  // running NCC while ok; 0 before the first frame
+    cv::Vec2d video[2];                // each camera's track of its own frame-0 template
   };
-  bool trackCamera(int cam, const cv::Mat& img, Feature& f, State& s, double& ncc,
-                   double& nmi) noexcept;
+  bool searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s, cv::Vec2d& pos,
+                    double& ncc) noexcept;
+  bool trackCamera(int cam, const cv::Mat& img, State& s, double& ncc, double& nmi) noexcept;
   void surfaceGate() noexcept;
+  // Candidate positions in ROI coordinates (sub-pixel for blobs).
+  [[nodiscard]] std::vector<cv::Point2d> detectHarris(const cv::Mat& img) const;
+  [[nodiscard]] std::vector<cv::Point2d> detectDarkBlobs(const cv::Mat& img) const;
 
   StereoRig rig_;
   TrackerConfig config_;
@@ -123,6 +155,10 @@ class StereoTracker {
   std::vector<float> scores_;      // sized once: (2R+1)^2
   std::vector<uint8_t> scratch_;   // a padded copy of a window near the image border
   std::vector<double> residuals_;  // surface gate, sized to max_features
+  Roi roi_;
+  double depth_tolerance_mm_ = 0.0;
+  int next_id_ = 0;
+  int detected_ok_ = 0;
 };
 
 }  // namespace pulsetrack::vision

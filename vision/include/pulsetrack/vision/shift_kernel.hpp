@@ -1,0 +1,33 @@
+#pragma once
+// The translation refinement's kernel (internal to the vision library, public for its tests):
+// Highway in shift_simd.cpp, the scalar reference in affine_refiner.cpp; tests compare the two.
+
+#include <cstddef>
+#include <cstdint>
+
+#include "pulsetrack/vision/affine_refiner.hpp"
+
+namespace pulsetrack::vision {
+
+inline constexpr int kShiftRows = kAffineSide;  // 15 rows of the patch
+inline constexpr int kShiftCols = 16;           // 15 columns padded to 16 (the pad weighs 0)
+
+struct ShiftKernelInput {
+  const uint8_t* image = nullptr;  // the first tap: (kShiftRows + 3) rows, kShiftCols + 3 columns
+  size_t stride = 0;
+  float wx[4] = {}, wy[4] = {};  // Catmull-Rom weights of the common fractional offset
+  const float* t = nullptr;      // template, gradients: kShiftRows x kShiftCols, pad column 0
+  const float* gx = nullptr;
+  const float* gy = nullptr;
+  const float* mask = nullptr;  // kShiftCols: 1 for the patch's columns, 0 for the pad
+};
+
+// Sums over the resampled patch p: p, p^2, gx p, gy p, t p.
+struct ShiftSums {
+  float p = 0, pp = 0, gxp = 0, gyp = 0, tp = 0;
+};
+
+void shiftSums(const ShiftKernelInput& in, ShiftSums& out) noexcept;        // Highway
+void shiftSumsScalar(const ShiftKernelInput& in, ShiftSums& out) noexcept;  // reference
+
+}  // namespace pulsetrack::vision
