@@ -1,0 +1,87 @@
+#pragma once
+// A thin, move-only C++ layer over Cyclone DDS's C API (types from msgs/idl by idlc).
+// Topic names follow ROS 2 (rt/pulsetrack/...), QoS the ROS 2 profiles the issue names:
+// sensor data (best effort, keep last 5, volatile) for the streams, reliable transient-local
+// (keep last 1) for health, reliable keep-last-10 for commands.
+
+#include <dds/dds.h>
+
+#include <chrono>
+#include <cstdint>
+#include <string>
+
+#include "pulsetrack/vision/error.hpp"
+#include "pulsetrack_msgs.h"
+
+namespace pulsetrack::dds {
+
+using vision::Result;
+
+inline constexpr const char* kFeaturesTopic = "rt/pulsetrack/features";
+inline constexpr const char* kDeformationTopic = "rt/pulsetrack/deformation";
+inline constexpr const char* kHealthTopic = "rt/pulsetrack/health";
+inline constexpr const char* kCommandTopic = "rt/pulsetrack/command";
+
+enum class Profile { kSensorData, kTransientLocal, kCommand };
+
+// An owned DDS entity (deleted with its children).
+class Entity {
+ public:
+  Entity() = default;
+  explicit Entity(dds_entity_t e) : e_(e) {}
+  Entity(Entity&& o) noexcept : e_(o.e_) { o.e_ = 0; }
+  Entity& operator=(Entity&& o) noexcept;
+  Entity(const Entity&) = delete;
+  Entity& operator=(const Entity&) = delete;
+  ~Entity();
+  [[nodiscard]] dds_entity_t get() const { return e_; }
+
+ private:
+  dds_entity_t e_ = 0;
+};
+
+class Participant {
+ public:
+  static Result<Participant> create(uint32_t domain_id);
+  [[nodiscard]] dds_entity_t get() const { return p_.get(); }
+  [[nodiscard]] uint32_t domain() const { return domain_; }
+
+ private:
+  Entity p_;
+  uint32_t domain_ = 0;
+};
+
+class Writer {
+ public:
+  static Result<Writer> create(const Participant& p, const char* topic,
+                               const dds_topic_descriptor_t* type, Profile profile);
+  // Publishes one sample of the writer's type.
+  Result<void> write(const void* sample) const;
+  // Readers currently matched (discovery), for health and tests.
+  [[nodiscard]] int matchedReaders() const;
+
+ private:
+  Entity topic_, writer_;
+  std::string name_;
+};
+
+class Reader {
+ public:
+  static Result<Reader> create(const Participant& p, const char* topic,
+                               const dds_topic_descriptor_t* type, Profile profile);
+  // Waits up to `timeout` for data; takes one sample into `sample` (of the reader's type,
+  // zero-initialized at first; its strings and sequences are reused from take to take, and
+  // freed by the caller with dds_sample_free(..., DDS_FREE_CONTENTS)). False on timeout.
+  bool takeOne(void* sample, std::chrono::milliseconds timeout) const;
+  [[nodiscard]] int matchedWriters() const;
+
+ private:
+  Entity topic_, reader_, waitset_, condition_;
+  const dds_topic_descriptor_t* type_ = nullptr;
+  std::string name_;
+};
+
+// Header stamp from a time in ns (CLOCK_REALTIME or the trigger's time base).
+builtin_interfaces_msg_dds__Time_ stamp(int64_t ns);
+
+}  // namespace pulsetrack::dds

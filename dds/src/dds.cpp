@@ -1,0 +1,151 @@
+#include "pulsetrack/dds/dds.hpp"
+
+#include <fmt/format.h>
+
+namespace pulsetrack::dds {
+
+namespace {
+
+std::string why(dds_return_t rc) { return dds_strretcode(rc); }
+
+dds_qos_t* makeQos(Profile profile) {
+  dds_qos_t* qos = dds_create_qos();
+  switch (profile) {
+    case Profile::kSensorData:
+      dds_qset_reliability(qos, DDS_RELIABILITY_BEST_EFFORT, 0);
+      dds_qset_history(qos, DDS_HISTORY_KEEP_LAST, 5);
+      dds_qset_durability(qos, DDS_DURABILITY_VOLATILE);
+      break;
+    case Profile::kTransientLocal:
+      dds_qset_reliability(qos, DDS_RELIABILITY_RELIABLE, DDS_MSECS(100));
+      dds_qset_history(qos, DDS_HISTORY_KEEP_LAST, 1);
+      dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
+      break;
+    case Profile::kCommand:
+      dds_qset_reliability(qos, DDS_RELIABILITY_RELIABLE, DDS_MSECS(100));
+      dds_qset_history(qos, DDS_HISTORY_KEEP_LAST, 10);
+      dds_qset_durability(qos, DDS_DURABILITY_VOLATILE);
+      break;
+  }
+  return qos;
+}
+
+Result<dds_entity_t> makeTopic(const Participant& p, const char* topic,
+                               const dds_topic_descriptor_t* type) {
+  const dds_entity_t t = dds_create_topic(p.get(), type, topic, nullptr, nullptr);
+  if (t < 0)
+    return vision::fail(
+        fmt::format("DDS: cannot create topic {} ({}): {}", topic, type->m_typename, why(t)));
+  return t;
+}
+
+}  // namespace
+
+Entity& Entity::operator=(Entity&& o) noexcept {
+  if (this != &o) {
+    if (e_ > 0) dds_delete(e_);
+    e_ = o.e_;
+    o.e_ = 0;
+  }
+  return *this;
+}
+
+Entity::~Entity() {
+  if (e_ > 0) dds_delete(e_);
+}
+
+Result<Participant> Participant::create(uint32_t domain_id) {
+  if (domain_id > 232)
+    return vision::fail(fmt::format("DDS: domain id {} is out of range (0-232)", domain_id));
+  const dds_entity_t e = dds_create_participant(domain_id, nullptr, nullptr);
+  if (e < 0)
+    return vision::fail(fmt::format(
+        "DDS: cannot join domain {}: {} (check CYCLONEDDS_URI and the network interface)",
+        domain_id, why(e)));
+  Participant p;
+  p.p_ = Entity(e);
+  p.domain_ = domain_id;
+  return p;
+}
+
+Result<Writer> Writer::create(const Participant& p, const char* topic,
+                              const dds_topic_descriptor_t* type, Profile profile) {
+  auto t = makeTopic(p, topic, type);
+  if (!t) return std::unexpected(t.error());
+  Writer w;
+  w.topic_ = Entity(*t);
+  w.name_ = topic;
+  dds_qos_t* qos = makeQos(profile);
+  const dds_entity_t e = dds_create_writer(p.get(), *t, qos, nullptr);
+  dds_delete_qos(qos);
+  if (e < 0)
+    return vision::fail(fmt::format("DDS: cannot create a writer on {}: {}", topic, why(e)));
+  w.writer_ = Entity(e);
+  return w;
+}
+
+Result<void> Writer::write(const void* sample) const {
+  if (const dds_return_t rc = dds_write(writer_.get(), sample); rc != DDS_RETCODE_OK)
+    return vision::fail(fmt::format("DDS: write on {} failed: {}", name_, why(rc)));
+  return {};
+}
+
+int Writer::matchedReaders() const {
+  dds_publication_matched_status_t st{};
+  if (dds_get_publication_matched_status(writer_.get(), &st) != DDS_RETCODE_OK) return 0;
+  return static_cast<int>(st.current_count);
+}
+
+Result<Reader> Reader::create(const Participant& p, const char* topic,
+                              const dds_topic_descriptor_t* type, Profile profile) {
+  auto t = makeTopic(p, topic, type);
+  if (!t) return std::unexpected(t.error());
+  Reader r;
+  r.topic_ = Entity(*t);
+  r.type_ = type;
+  r.name_ = topic;
+  dds_qos_t* qos = makeQos(profile);
+  const dds_entity_t e = dds_create_reader(p.get(), *t, qos, nullptr);
+  dds_delete_qos(qos);
+  if (e < 0)
+    return vision::fail(fmt::format("DDS: cannot create a reader on {}: {}", topic, why(e)));
+  r.reader_ = Entity(e);
+  const dds_entity_t cond = dds_create_readcondition(e, DDS_ANY_STATE);
+  const dds_entity_t ws = dds_create_waitset(p.get());
+  if (cond < 0 || ws < 0 || dds_waitset_attach(ws, cond, 0) != DDS_RETCODE_OK)
+    return vision::fail(fmt::format("DDS: cannot wait on {}", topic));
+  r.condition_ = Entity(cond);
+  r.waitset_ = Entity(ws);
+  return r;
+}
+
+bool Reader::takeOne(void* sample, std::chrono::milliseconds timeout) const {
+  void* samples[1] = {sample};
+  dds_sample_info_t info[1];
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  for (;;) {
+    const dds_return_t n = dds_take(reader_.get(), samples, info, 1, 1);
+    if (n > 0 && info[0].valid_data) return true;
+    const auto left = deadline - std::chrono::steady_clock::now();
+    if (left <= std::chrono::nanoseconds(0)) return false;
+    if (n <= 0) {
+      dds_waitset_wait(waitset_.get(), nullptr, 0,
+                       std::chrono::duration_cast<std::chrono::nanoseconds>(left).count());
+    }
+  }
+}
+
+int Reader::matchedWriters() const {
+  dds_subscription_matched_status_t st{};
+  if (dds_get_subscription_matched_status(reader_.get(), &st) != DDS_RETCODE_OK) return 0;
+  return static_cast<int>(st.current_count);
+}
+
+builtin_interfaces_msg_dds__Time_ stamp(int64_t ns) {
+  builtin_interfaces_msg_dds__Time_ t{};
+  t.sec = static_cast<int32_t>(ns / 1'000'000'000);
+  t.nanosec = static_cast<uint32_t>(ns % 1'000'000'000);
+  return t;
+}
+
+}  // namespace pulsetrack::dds

@@ -1,0 +1,138 @@
+// Cyclone DDS between two real processes over loopback (own domain id): the ROS 2-named topics
+// and types, sensor-data features, transient-local health seen by a late joiner.
+
+#include "pulsetrack/dds/dds.hpp"
+
+#include <gtest/gtest.h>
+#include <spawn.h>
+#include <sys/wait.h>
+
+#include <cstdlib>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+extern char** environ;
+
+namespace pulsetrack::dds {
+namespace {
+
+constexpr const char* kLoopback =
+    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/>"
+    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto"
+    "</ParticipantIndex><Peers><Peer "
+    "Address=\"127.0.0.1\"/></Peers></Discovery></Domain></CycloneDDS>";
+
+TEST(Dds, TypesAreNamedTheRos2Way) {
+  EXPECT_STREQ(pulsetrack_msgs_msg_dds__Features__desc.m_typename,
+               "pulsetrack_msgs::msg::dds_::Features_");
+  EXPECT_STREQ(pulsetrack_msgs_msg_dds__Health__desc.m_typename,
+               "pulsetrack_msgs::msg::dds_::Health_");
+  EXPECT_STREQ(kFeaturesTopic, "rt/pulsetrack/features");
+}
+
+// The ROS 2 .msg files say what the IDL says: the same fields in the same order (a ROS 2 node
+// built from msgs/ros must read what the daemon writes).
+std::vector<std::string> idlFields(const std::string& idl, const std::string& type) {
+  const size_t at = idl.find("struct " + type + "_ {");
+  if (at == std::string::npos) return {};
+  const size_t end = idl.find("};", at);
+  std::istringstream body(idl.substr(at, end - at));
+  std::vector<std::string> out;
+  std::string line;
+  std::getline(body, line);  // the struct line
+  while (std::getline(body, line)) {
+    line = line.substr(0, line.find("//"));
+    const size_t semi = line.find(';');
+    if (semi == std::string::npos) continue;
+    std::string decl = line.substr(0, semi);
+    decl = decl.substr(0, decl.find('['));
+    out.push_back(decl.substr(decl.find_last_of(' ') + 1));
+  }
+  return out;
+}
+
+std::vector<std::string> msgFields(const std::string& path) {
+  std::ifstream in(path);
+  std::vector<std::string> out;
+  std::string line;
+  while (std::getline(in, line)) {
+    line = line.substr(0, line.find('#'));
+    if (line.find('=') != std::string::npos) continue;  // a constant
+    std::istringstream ss(line);
+    std::string type, name;
+    if (ss >> type >> name) out.push_back(name);
+  }
+  return out;
+}
+
+TEST(Dds, Ros2MessagesMatchTheIdl) {
+  std::ifstream f(std::string(PULSETRACK_SOURCE_DIR) + "/msgs/idl/pulsetrack_msgs.idl");
+  const std::string idl((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  ASSERT_FALSE(idl.empty());
+  for (const char* t :
+       {"Feature", "Features", "Deformation", "StageLatency", "Health", "Command"}) {
+    const auto a = idlFields(idl, t);
+    const auto b = msgFields(std::string(PULSETRACK_SOURCE_DIR) + "/msgs/ros/pulsetrack_msgs/msg/" +
+                             t + ".msg");
+    EXPECT_FALSE(a.empty()) << t;
+    EXPECT_EQ(a, b) << t;
+  }
+}
+
+TEST(Dds, BadDomainIsAClearError) {
+  auto p = Participant::create(500);
+  ASSERT_FALSE(p);
+  EXPECT_NE(p.error().message.find("domain id 500"), std::string::npos);
+}
+
+TEST(Dds, AnotherProcessPublishesFeaturesAndALateJoinerGetsHealth) {
+  setenv("CYCLONEDDS_URI", kLoopback, 1);
+  const uint32_t domain = 71;
+  pid_t pid = 0;
+  std::string d = std::to_string(domain);
+  char* argv[] = {const_cast<char*>(PULSETRACK_DDS_PEER), d.data(), const_cast<char*>("rig-7"),
+                  nullptr};
+  ASSERT_EQ(posix_spawn(&pid, PULSETRACK_DDS_PEER, nullptr, nullptr, argv, environ), 0);
+  auto p = Participant::create(domain);
+  ASSERT_TRUE(p) << p.error().message;
+  // Join late: the peer wrote its health before this reader existed.
+  auto features = Reader::create(*p, kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc,
+                                 Profile::kSensorData);
+  ASSERT_TRUE(features) << features.error().message;
+  pulsetrack_msgs_msg_dds__Features_ f{};
+  int got = 0;
+  uint64_t last = 0;
+  bool ordered = true;
+  while (features->takeOne(&f, std::chrono::milliseconds(3000))) {
+    EXPECT_STREQ(f.rig_id, "rig-7");
+    EXPECT_STREQ(f.header.frame_id, "pulsetrack_left_camera");
+    ASSERT_EQ(f.features._length, 3U);
+    EXPECT_EQ(f.features._buffer[2].id, 2);
+    EXPECT_DOUBLE_EQ(f.features._buffer[2].position.x, 0.002);
+    EXPECT_DOUBLE_EQ(f.features._buffer[0].position.z, 0.45 + 1e-6 * static_cast<double>(f.frame));
+    if (got > 0 && f.frame <= last) ordered = false;
+    last = f.frame;
+    if (++got == 20 || f.frame == 19) break;
+  }
+  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
+  EXPECT_GE(got, 15);  // best effort over loopback: nearly all
+  EXPECT_TRUE(ordered);
+  auto health = Reader::create(*p, kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                               Profile::kTransientLocal);
+  ASSERT_TRUE(health) << health.error().message;
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  ASSERT_TRUE(health->takeOne(&h, std::chrono::milliseconds(3000)));
+  EXPECT_STREQ(h.rig_id, "rig-7");
+  EXPECT_EQ(h.state, 1);
+  EXPECT_EQ(h.frames, 1234U);
+  EXPECT_STREQ(h.source, "sim");
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0);
+}
+
+}  // namespace
+}  // namespace pulsetrack::dds
