@@ -7,146 +7,14 @@
 #include <set>
 #include <sstream>
 
+#include "pulsetrack/cfg/table_reader.hpp"
+
 namespace pulsetrack::sim {
 
+using cfg::TableReader;
 using vision::fail;
 
 namespace {
-
-// Reads a TOML table key by key; the first problem (wrong type, out of range, unknown key) is
-// kept with its file:line. Getters return the default after an error so parsing reads straight.
-class TableReader {
- public:
-  TableReader(const toml::table& table, std::string file, std::string prefix, std::string* error)
-      : table_(table), file_(std::move(file)), prefix_(std::move(prefix)), error_(error) {}
-
-  double number(const char* key, double def, double lo, double hi) {
-    seen_.insert(key);
-    const toml::node* n = table_.get(key);
-    if (n == nullptr) return def;
-    const auto v = n->value<double>();
-    if (!v || !std::isfinite(*v) || *v < lo || *v > hi) {
-      fault(n,
-            fmt::format("{}: expected a number in [{}, {}], got {}", name(key), lo, hi, text(n)));
-      return def;
-    }
-    return *v;
-  }
-  int integer(const char* key, int def, int lo, int hi) {
-    seen_.insert(key);
-    const toml::node* n = table_.get(key);
-    if (n == nullptr) return def;
-    const auto v = n->value_exact<int64_t>();
-    if (!v || *v < lo || *v > hi) {
-      fault(n,
-            fmt::format("{}: expected an integer in [{}, {}], got {}", name(key), lo, hi, text(n)));
-      return def;
-    }
-    return static_cast<int>(*v);
-  }
-  bool boolean(const char* key, bool def) {
-    seen_.insert(key);
-    const toml::node* n = table_.get(key);
-    if (n == nullptr) return def;
-    const auto v = n->value_exact<bool>();
-    if (!v) {
-      fault(n, fmt::format("{}: expected true or false, got {}", name(key), text(n)));
-      return def;
-    }
-    return *v;
-  }
-  std::string string(const char* key, const std::string& def,
-                     const std::set<std::string>& allowed = {}) {
-    seen_.insert(key);
-    const toml::node* n = table_.get(key);
-    if (n == nullptr) return def;
-    const auto v = n->value_exact<std::string>();
-    if (!v || (!allowed.empty() && !allowed.contains(*v))) {
-      std::string list;
-      for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
-      fault(n, fmt::format("{}: expected {}, got {}", name(key),
-                           allowed.empty() ? std::string("a string") : "one of " + list, text(n)));
-      return def;
-    }
-    return *v;
-  }
-  std::vector<double> numbers(const char* key, const std::vector<double>& def, size_t count_lo,
-                              size_t count_hi, double lo, double hi) {
-    seen_.insert(key);
-    const toml::node* n = table_.get(key);
-    if (n == nullptr) return def;
-    const toml::array* a = n->as_array();
-    std::vector<double> out;
-    if (a != nullptr) {
-      for (const toml::node& e : *a) {
-        const auto v = e.value<double>();
-        if (!v || *v < lo || *v > hi) {
-          out.clear();
-          break;
-        }
-        out.push_back(*v);
-      }
-    }
-    if (a == nullptr || out.size() < count_lo || out.size() > count_hi ||
-        (out.empty() && count_lo > 0) || (a != nullptr && out.size() != a->size())) {
-      fault(n, fmt::format("{}: expected {} to {} numbers in [{}, {}]", name(key), count_lo,
-                           count_hi, lo, hi));
-      return def;
-    }
-    return out;
-  }
-  const toml::table* table(const char* key) {
-    seen_.insert(key);
-    const toml::node* n = table_.get(key);
-    if (n == nullptr) return nullptr;
-    if (!n->is_table()) {
-      fault(n, fmt::format("{}: expected a table", name(key)));
-      return nullptr;
-    }
-    return n->as_table();
-  }
-  const toml::array* arrayOfTables(const char* key) {
-    seen_.insert(key);
-    const toml::node* n = table_.get(key);
-    if (n == nullptr) return nullptr;
-    if (!n->is_array_of_tables()) {
-      fault(n, fmt::format("{}: expected an array of tables ([[{}]])", name(key), name(key)));
-      return nullptr;
-    }
-    return n->as_array();
-  }
-  // Unknown keys are errors: a typo must not silently fall back to a default.
-  void finish() {
-    for (const auto& [k, v] : table_) {
-      if (!seen_.contains(std::string(k.str()))) {
-        fault(&v, fmt::format("unknown key '{}'", name(std::string(k.str()).c_str())));
-      }
-    }
-  }
-  [[nodiscard]] const std::string& file() const { return file_; }
-  std::string* errorSink() const { return error_; }
-  [[nodiscard]] std::string child(const char* key) const { return name(key); }
-
- private:
-  [[nodiscard]] std::string name(const char* key) const {
-    return prefix_.empty() ? key : prefix_ + "." + key;
-  }
-  static std::string text(const toml::node* n) {
-    std::ostringstream s;
-    n->visit([&s](const auto& v) { s << v; });
-    return s.str();
-  }
-  void fault(const toml::node* n, const std::string& what) {
-    if (!error_->empty()) return;
-    *error_ = fmt::format("{}:{}: {}", file_, n->source().begin.line, what);
-  }
-
-  const toml::table& table_;
-  std::string file_;
-  std::string prefix_;
-  std::string* error_;
-  std::set<std::string> seen_;
-};
 
 void readCamera(TableReader& r, CameraEffectsSpec& c) {
   c.blur_sigma_px = r.number("blur_sigma_px", c.blur_sigma_px, 0.0, 10.0);
@@ -280,11 +148,7 @@ void readPlate(TableReader& r, PlateSpec& p) {
 vision::Result<SceneSpec> parseScene(const std::string& text, const std::filesystem::path& path) {
   const std::string file = path.string();
   toml::table root;
-  try {
-    root = toml::parse(text, file);
-  } catch (const toml::parse_error& e) {
-    return fail(fmt::format("{}:{}: {}", file, e.source().begin.line, e.description()));
-  }
+  if (std::string syntax; !cfg::parseToml(text, file, root, syntax)) return fail(syntax);
   SceneSpec s;
   s.source_text = text;
   s.source_path = path;

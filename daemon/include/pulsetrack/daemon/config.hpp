@@ -1,0 +1,38 @@
+#pragma once
+// pulsetrackd's configuration (config/pulsetrackd.toml documents every key).
+
+#include <filesystem>
+#include <string>
+
+#include "pulsetrack/rt/thread_policy.hpp"
+#include "pulsetrack/vision/error.hpp"
+#include "pulsetrack/vision/stereo_tracker.hpp"
+
+namespace pulsetrack::daemon {
+
+enum class SourceKind { kSim, kReplay };
+enum class Pace { kRealtime, kFast };
+
+struct DaemonConfig {
+  std::string rig_id = "rig-0";
+  uint32_t domain_id = 0;
+  SourceKind source = SourceKind::kSim;
+  std::filesystem::path scene;      // sim: resolved against the config file's folder
+  std::filesystem::path recording;  // replay
+  double fps = 30.0;
+  Pace pace = Pace::kRealtime;
+  bool loop = true;
+  vision::Roi roi{{483, 339, 400, 340}, {476, 344, 400, 340}};
+  double depth_tolerance_mm = 20.0;
+  vision::TrackerConfig tracker;
+  bool lock_memory = true;
+  double deadline_ms = 20.0;
+  rt::ThreadPolicy capture{80, -1}, track{70, -1}, publish{60, -1};
+  int health_period_ms = 500;
+};
+
+vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
+                                               const std::filesystem::path& path);
+vision::Result<DaemonConfig> loadDaemonConfig(const std::filesystem::path& path);
+
+}  // namespace pulsetrack::daemon

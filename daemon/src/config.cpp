@@ -1,0 +1,120 @@
+#include "pulsetrack/daemon/config.hpp"
+
+#include <fmt/format.h>
+
+#include <fstream>
+#include <sstream>
+
+#include "pulsetrack/cfg/table_reader.hpp"
+
+namespace pulsetrack::daemon {
+
+using cfg::TableReader;
+using vision::fail;
+
+namespace {
+
+cv::Rect rect(TableReader& r, const char* key, const cv::Rect& def, std::string& error,
+              const std::string& file) {
+  const std::vector<double> v =
+      r.numbers(key, {double(def.x), double(def.y), double(def.width), double(def.height)}, 4, 4,
+                0.0, 100000.0);
+  for (const double x : v) {
+    if (x != std::floor(x) && error.empty())
+      error = fmt::format("{}: {}: expected 4 whole numbers of pixels", file, r.child(key));
+  }
+  if (v[2] < 1 || v[3] < 1) {
+    if (error.empty())
+      error = fmt::format("{}: {}: width and height must be positive", file, r.child(key));
+  }
+  return {static_cast<int>(v[0]), static_cast<int>(v[1]), static_cast<int>(v[2]),
+          static_cast<int>(v[3])};
+}
+
+rt::ThreadPolicy policy(TableReader& r, const char* key, const rt::ThreadPolicy& def,
+                        std::string& error) {
+  rt::ThreadPolicy p = def;
+  if (const toml::table* t = r.table(key)) {
+    TableReader s(*t, r.file(), r.child(key), &error);
+    p.fifo_priority = s.integer("priority", def.fifo_priority, 0, 99);
+    p.cpu = s.integer("cpu", def.cpu, -1, 1023);
+    s.finish();
+  }
+  return p;
+}
+
+}  // namespace
+
+vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
+                                               const std::filesystem::path& path) {
+  const std::string file = path.string();
+  toml::table root;
+  if (std::string syntax; !cfg::parseToml(text, file, root, syntax)) return fail(syntax);
+  DaemonConfig c;
+  std::string error;
+  TableReader r(root, file, "", &error);
+  c.rig_id = r.string("rig_id", c.rig_id);
+  if (c.rig_id.empty() && error.empty()) error = fmt::format("{}: rig_id must not be empty", file);
+  if (const toml::table* t = r.table("dds")) {
+    TableReader d(*t, file, "dds", &error);
+    c.domain_id = static_cast<uint32_t>(d.integer("domain_id", 0, 0, 232));
+    d.finish();
+  }
+  if (const toml::table* t = r.table("source")) {
+    TableReader s(*t, file, "source", &error);
+    const std::string kind = s.string("kind", "sim", {"sim", "replay"});
+    c.source = kind == "replay" ? SourceKind::kReplay : SourceKind::kSim;
+    const std::string scene = s.string("scene", "scenes/cortex-60s.toml");
+    const std::string recording = s.string("recording", "");
+    c.scene = path.parent_path() / scene;
+    if (!recording.empty()) c.recording = path.parent_path() / recording;
+    c.fps = s.number("fps", c.fps, 0.1, 1000.0);
+    c.pace = s.string("pace", "realtime", {"realtime", "fast"}) == "fast" ? Pace::kFast
+                                                                          : Pace::kRealtime;
+    c.loop = s.boolean("loop", c.loop);
+    s.finish();
+    if (c.source == SourceKind::kReplay && c.recording.empty() && error.empty())
+      error = fmt::format("{}: source.recording is required with kind = \"replay\"", file);
+  } else {
+    c.scene = path.parent_path() / "scenes/cortex-60s.toml";
+  }
+  if (const toml::table* t = r.table("tracker")) {
+    TableReader s(*t, file, "tracker", &error);
+    c.roi.left = rect(s, "roi_left", c.roi.left, error, file);
+    c.roi.right = rect(s, "roi_right", c.roi.right, error, file);
+    c.depth_tolerance_mm = s.number("depth_tolerance_mm", c.depth_tolerance_mm, 0.1, 500.0);
+    c.tracker.max_features = s.integer("max_features", c.tracker.max_features, 1, 1000);
+    c.tracker.detector = s.string("detector", "harris", {"harris", "blobs"}) == "blobs"
+                             ? vision::Detector::kDarkBlobs
+                             : vision::Detector::kHarris;
+    c.tracker.refinement = s.boolean("refinement", c.tracker.refinement);
+    s.finish();
+  }
+  if (const toml::table* t = r.table("realtime")) {
+    TableReader s(*t, file, "realtime", &error);
+    c.lock_memory = s.boolean("lock_memory", c.lock_memory);
+    c.deadline_ms = s.number("deadline_ms", c.deadline_ms, 0.1, 10000.0);
+    c.capture = policy(s, "capture", c.capture, error);
+    c.track = policy(s, "track", c.track, error);
+    c.publish = policy(s, "publish", c.publish, error);
+    s.finish();
+  }
+  if (const toml::table* t = r.table("health")) {
+    TableReader s(*t, file, "health", &error);
+    c.health_period_ms = s.integer("period_ms", c.health_period_ms, 10, 60000);
+    s.finish();
+  }
+  r.finish();
+  if (!error.empty()) return fail(error);
+  return c;
+}
+
+vision::Result<DaemonConfig> loadDaemonConfig(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  if (!in) return fail(fmt::format("{}: cannot open the config file", path.string()));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return parseDaemonConfig(ss.str(), path);
+}
+
+}  // namespace pulsetrack::daemon

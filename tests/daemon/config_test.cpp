@@ -1,0 +1,66 @@
+// pulsetrackd's config: the shipped file runs on the simulated rig; every bad input names
+// file:line and the key.
+
+#include "pulsetrack/daemon/config.hpp"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+
+namespace pulsetrack::daemon {
+namespace {
+
+const std::filesystem::path kShipped =
+    std::filesystem::path(PULSETRACK_SOURCE_DIR) / "config" / "pulsetrackd.toml";
+
+TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
+  auto c = loadDaemonConfig(kShipped);
+  ASSERT_TRUE(c) << c.error().message;
+  EXPECT_EQ(c->rig_id, "rig-0");
+  EXPECT_EQ(c->source, SourceKind::kSim);
+  EXPECT_TRUE(std::filesystem::exists(c->scene)) << c->scene;
+  EXPECT_EQ(c->roi.left, cv::Rect(483, 339, 400, 340));
+  EXPECT_EQ(c->roi.right, cv::Rect(476, 344, 400, 340));
+  EXPECT_EQ(c->track.fifo_priority, 70);
+  EXPECT_EQ(c->capture.cpu, -1);
+  EXPECT_DOUBLE_EQ(c->fps, 30.0);
+  // The file as shipped states the defaults: an empty file gives the same.
+  auto d = parseDaemonConfig("", kShipped);
+  ASSERT_TRUE(d);
+  EXPECT_EQ(d->rig_id, c->rig_id);
+  EXPECT_EQ(d->scene, c->scene);
+  EXPECT_EQ(d->roi.left, c->roi.left);
+  EXPECT_EQ(d->publish.fifo_priority, c->publish.fifo_priority);
+  EXPECT_EQ(d->health_period_ms, c->health_period_ms);
+}
+
+void expectError(const std::string& text, const std::string& needle) {
+  auto c = parseDaemonConfig(text, "/etc/pulsetrack/pulsetrackd.toml");
+  ASSERT_FALSE(c) << text;
+  EXPECT_NE(c.error().message.find(needle), std::string::npos)
+      << "message: " << c.error().message << "\nexpected: " << needle;
+}
+
+TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
+  expectError("rig_id = \"a\"\n[tracker]\nroi_lft = [1, 2, 3, 4]\n",
+              "pulsetrackd.toml:3: unknown key 'tracker.roi_lft'");
+  expectError("[dds]\ndomain_id = 300\n", "pulsetrackd.toml:2: dds.domain_id: expected an integer");
+  expectError("[dds]\ndomain_id = \"7\"\n", "dds.domain_id");
+  expectError("[source]\nkind = \"usb\"\n", "source.kind: expected one of replay, sim");
+  expectError("[source]\nkind = \"replay\"\n", "source.recording is required");
+  expectError("[tracker]\nroi_left = [1, 2, 3]\n", "tracker.roi_left: expected 4 to 4 numbers");
+  expectError("[tracker]\nroi_left = [1.5, 2, 3, 4]\n", "tracker.roi_left: expected 4 whole");
+  expectError("[tracker]\nroi_left = [1, 2, 0, 4]\n", "width and height must be positive");
+  expectError("[realtime]\ntrack = { priority = 120 }\n",
+              "pulsetrackd.toml:2: realtime.track.priority");
+  expectError("[realtime]\ntrack = { prio = 1 }\n", "unknown key 'realtime.track.prio'");
+  expectError("rig_id = \n", "pulsetrackd.toml:1:");  // a syntax error
+  expectError("rig_id = \"\"\n", "rig_id must not be empty");
+  auto missing = loadDaemonConfig("/nonexistent/pulsetrackd.toml");
+  ASSERT_FALSE(missing);
+  EXPECT_NE(missing.error().message.find("/nonexistent/pulsetrackd.toml: cannot open"),
+            std::string::npos);
+}
+
+}  // namespace
+}  // namespace pulsetrack::daemon
