@@ -145,7 +145,8 @@ double nmiReference(const cv::Mat& a, const cv::Mat& b, int bins) {
     for (int x = 0; x < a.cols; ++x) {
       const int ia = (a.at<uint8_t>(y, x) - int(amin)) * bins / (int(amax) - int(amin) + 1);
       const int ib = (b.at<uint8_t>(y, x) - int(bmin)) * bins / (int(bmax) - int(bmin) + 1);
-      joint[static_cast<size_t>(ia * bins + ib)] += 1.0 / n;
+      joint[static_cast<size_t>(ia) * static_cast<size_t>(bins) + static_cast<size_t>(ib)] +=
+          1.0 / n;
       pa[static_cast<size_t>(ia)] += 1.0 / n;
       pb[static_cast<size_t>(ib)] += 1.0 / n;
     }

@@ -172,7 +172,6 @@ namespace {
 // gradients), by separable Catmull-Rom: a horizontal pass over the rows the vertical pass
 // needs, then the vertical pass. False when a tap would leave the image.
 constexpr int kShiftSide = kAffineSide + 2;
-constexpr int kShiftHalf = kShiftSide / 2;
 
 template <int kSideT>
 bool shiftedPatch(const uint8_t* image, size_t stride, int width, int height,
@@ -220,9 +219,9 @@ bool ShiftTemplate::set(const uint8_t* image, size_t stride, int width, int heig
   for (int y = 0; y < kAffineSide; ++y) {
     for (int x = 0; x < kAffineSide; ++x) {
       const auto at = [&](int dx, int dy) {
-        return big[static_cast<size_t>((y + 1 + dy) * kShiftSide + x + 1 + dx)];
+        return big[static_cast<size_t>(y + 1 + dy) * kShiftSide + static_cast<size_t>(x + 1 + dx)];
       };
-      const size_t k = static_cast<size_t>(y * kCols + x);
+      const size_t k = static_cast<size_t>(y) * kCols + static_cast<size_t>(x);
       t_[k] = at(0, 0);
       gx_[k] = 0.5F * (at(1, 0) - at(-1, 0));
       gy_[k] = 0.5F * (at(0, 1) - at(0, -1));
@@ -311,7 +310,7 @@ void shiftSumsScalar(const ShiftKernelInput& in, ShiftSums& out) noexcept {
   out = {};
   for (int r = 0; r < kShiftRows; ++r) {
     for (int c = 0; c < kShiftCols; ++c) {
-      const size_t k = static_cast<size_t>(r * kShiftCols + c);
+      const size_t k = static_cast<size_t>(r) * kShiftCols + static_cast<size_t>(c);
       const float p = (in.wy[0] * h[r][c] + in.wy[1] * h[r + 1][c] + in.wy[2] * h[r + 2][c] +
                        in.wy[3] * h[r + 3][c]) *
                       in.mask[c];

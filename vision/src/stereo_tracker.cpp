@@ -192,6 +192,7 @@ std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img) const {
     if (static_cast<int>(chosen.size()) >= config_.max_features) break;
   }
   std::vector<cv::Point2d> out;
+  out.reserve(chosen.size());
   for (const cv::Point& p : chosen) out.emplace_back(p.x, p.y);
   return out;
 }

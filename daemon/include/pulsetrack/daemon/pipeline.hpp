@@ -1,0 +1,94 @@
+#pragma once
+// pulsetrackd's pipeline: capture, track and publish stages on their own threads, joined by
+// triple buffers of preallocated items (rt/latest_slot.hpp: the newest frame wins, drops are
+// counted), each stage beating a heartbeat and filling a latency histogram.
+//
+//   capture: source.next() into a frame slot          -> frames_   (drop when track is slow)
+//   track:   StereoTracker (initialize on the first pair, then track(); re-detection when too
+//            few remain), features copied into a preallocated result  -> results_ (drop)
+//   publish: DDS features and deformation per result; the health sample, systemd STATUS and
+//            the watchdog ping from health() called by the main thread.
+
+#include <atomic>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "pulsetrack/daemon/config.hpp"
+#include "pulsetrack/daemon/notify.hpp"
+#include "pulsetrack/dds/dds.hpp"
+#include "pulsetrack/drivers/source.hpp"
+#include "pulsetrack/rt/heartbeat.hpp"
+#include "pulsetrack/rt/latency_histogram.hpp"
+#include "pulsetrack/rt/latest_slot.hpp"
+#include "pulsetrack/vision/stereo_tracker.hpp"
+
+namespace pulsetrack::daemon {
+
+struct Frame {
+  drivers::StereoFrame pair;
+  int64_t captured_ns = 0;  // monotonic, when the source handed it over
+};
+
+struct TrackResult {
+  uint64_t trigger_seq = 0;
+  int64_t t_ns = 0;  // trigger time
+  int64_t captured_ns = 0;
+  int64_t tracked_ns = 0;
+  std::vector<vision::Feature> features;  // capacity reserved at start
+  int ok = 0;
+  bool redetected = false;  // the features are new: the deformation's reference moves
+};
+
+enum class State : uint8_t { kStarting = 0, kOk = 1, kDegraded = 2, kFault = 3 };
+const char* toString(State s);
+
+class Pipeline {
+ public:
+  Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSource> source,
+           const dds::Participant& participant);
+  ~Pipeline();
+  Pipeline(const Pipeline&) = delete;
+  Pipeline& operator=(const Pipeline&) = delete;
+
+  // Creates the DDS writers and starts the threads. Thread-policy problems are returned as
+  // warnings (said once by the caller), not errors.
+  vision::Result<std::vector<std::string>> start();
+  void stop();
+
+  // Called periodically by the main thread: publishes health, updates STATUS, pings the
+  // watchdog while every stage is on time. Returns the state it published.
+  State health(const Notifier& notifier);
+
+  [[nodiscard]] bool trackedOnce() const { return tracked_.load() > 0; }
+  [[nodiscard]] uint64_t tracked() const { return tracked_.load(); }
+  // Test hook: stall the track stage (the watchdog must notice).
+  void stallTrackFor(std::chrono::milliseconds d) { stall_ms_.store(d.count()); }
+
+ private:
+  void captureLoop();
+  void trackLoop();
+  void publishLoop();
+
+  DaemonConfig config_;
+  std::unique_ptr<drivers::CameraSource> source_;
+  const dds::Participant& participant_;
+  dds::Writer features_writer_, deformation_writer_, health_writer_;
+  rt::LatestSlot<Frame> frames_;
+  rt::LatestSlot<TrackResult> results_;
+  std::atomic<uint64_t> frames_seq_{0}, results_seq_{0};  // wake-ups (futex, no lock)
+  rt::Heartbeat capture_beat_, track_beat_, publish_beat_;
+  rt::LatencyHistogram capture_lat_, track_lat_, publish_lat_;
+  std::atomic<uint64_t> tracked_{0}, deadline_misses_{0}, source_faults_{0};
+  std::atomic<bool> running_{false};
+  std::atomic<int64_t> stall_ms_{0};
+  std::atomic<int> ok_features_{0}, total_features_{0};
+  std::string last_error_;  // written by the capture thread before its beat stops
+  std::atomic<bool> has_error_{false};
+  std::thread capture_, track_, publish_;
+  int64_t started_ns_ = 0;
+  bool said_ready_ = false;
+};
+
+}  // namespace pulsetrack::daemon

@@ -1,0 +1,127 @@
+// pulsetrackd: the real-time appliance daemon. Reads its config, runs the pipeline, publishes
+// over DDS, talks to systemd (READY, STATUS, WATCHDOG), stops cleanly on SIGTERM/SIGINT.
+
+#include <fmt/format.h>
+
+#include <CLI/CLI.hpp>
+#include <csignal>
+#include <cstdio>
+#include <thread>
+
+#include "pulsetrack/daemon/config.hpp"
+#include "pulsetrack/daemon/notify.hpp"
+#include "pulsetrack/daemon/pipeline.hpp"
+#include "pulsetrack/sim/scene.hpp"
+#include "pulsetrack/vision/stereo_rig.hpp"
+
+namespace {
+volatile std::sig_atomic_t g_stop = 0;
+void onSignal(int /*sig*/) { g_stop = 1; }
+}  // namespace
+
+namespace {
+
+int run(int argc, char** argv) {
+  using namespace pulsetrack;
+  CLI::App app(
+      "pulsetrackd: tracks the brain surface's motion with a stereo rig and publishes it "
+      "over DDS (rt/pulsetrack/features, deformation, health).");
+  std::string config_path = "/etc/pulsetrack/pulsetrackd.toml";
+  bool check = false;
+  double run_for = 0.0;
+  int stall_after = 0;
+  app.add_option("-c,--config", config_path, "Config file (config/pulsetrackd.toml documents it)")
+      ->capture_default_str();
+  app.add_flag("--check-config", check, "Read the config, report what is wrong, exit");
+  app.add_option("--run-for", run_for, "Stop after this many seconds (tests, benchmarks)");
+  app.add_option("--stall-track-after", stall_after,
+                 "Fault injection: stall the track stage for 5 s after this many frames");
+  CLI11_PARSE(app, argc, argv);
+
+  auto config = daemon::loadDaemonConfig(config_path);
+  if (!config) {
+    std::fprintf(stderr, "pulsetrackd: %s\n", config.error().message.c_str());
+    return 1;
+  }
+  std::unique_ptr<drivers::CameraSource> source;
+  if (config->source == daemon::SourceKind::kSim) {
+    auto scene = sim::loadScene(config->scene);
+    if (!scene) {
+      std::fprintf(stderr, "pulsetrackd: %s\n", scene.error().message.c_str());
+      return 1;
+    }
+    auto rig = vision::loadRig(scene->rig_path);
+    if (!rig) {
+      std::fprintf(stderr, "pulsetrackd: %s\n", rig.error().message.c_str());
+      return 1;
+    }
+    scene->supersample = 1;  // live rendering
+    source = drivers::makeSimSource(*scene, *rig, config->fps, config->loop);
+  } else {
+    auto r = drivers::makeReplaySource(config->recording, config->pace == daemon::Pace::kRealtime,
+                                       config->loop);
+    if (!r) {
+      std::fprintf(stderr, "pulsetrackd: %s\n", r.error().message.c_str());
+      return 1;
+    }
+    source = std::move(*r);
+  }
+  if (check) {
+    std::printf("%s: ok (source %s, rig %s, DDS domain %u)\n", config_path.c_str(),
+                source->name().c_str(), config->rig_id.c_str(), config->domain_id);
+    return 0;
+  }
+  auto participant = dds::Participant::create(config->domain_id);
+  if (!participant) {
+    std::fprintf(stderr, "pulsetrackd: %s\n", participant.error().message.c_str());
+    return 1;
+  }
+  std::signal(SIGTERM, onSignal);
+  std::signal(SIGINT, onSignal);
+  daemon::Pipeline pipeline(*config, std::move(source), *participant);
+  auto started = pipeline.start();
+  if (!started) {
+    std::fprintf(stderr, "pulsetrackd: %s\n", started.error().message.c_str());
+    return 1;
+  }
+  for (const std::string& w : *started)
+    std::fprintf(stderr, "pulsetrackd: warning: %s\n", w.c_str());
+  std::fprintf(stderr, "pulsetrackd: running, rig %s, DDS domain %u\n", config->rig_id.c_str(),
+               config->domain_id);
+  const daemon::Notifier notifier;
+  const auto period = std::chrono::milliseconds(config->health_period_ms);
+  const auto t0 = std::chrono::steady_clock::now();
+  daemon::State last = daemon::State::kStarting;
+  bool stalled = false;
+  while (g_stop == 0) {
+    std::this_thread::sleep_for(period);
+    if (stall_after > 0 && !stalled && pipeline.tracked() >= static_cast<uint64_t>(stall_after)) {
+      pipeline.stallTrackFor(std::chrono::seconds(5));
+      stalled = true;
+    }
+    const daemon::State s = pipeline.health(notifier);
+    if (s != last) {
+      std::fprintf(stderr, "pulsetrackd: state %s\n", daemon::toString(s));
+      last = s;
+    }
+    if (run_for > 0 &&
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() >= run_for)
+      break;
+  }
+  notifier.stopping();
+  pipeline.stop();
+  std::fprintf(stderr, "pulsetrackd: stopped after %llu tracked pairs\n",
+               static_cast<unsigned long long>(pipeline.tracked()));
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return run(argc, argv);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "pulsetrackd: fatal: %s\n", e.what());
+  }
+  return 1;
+}

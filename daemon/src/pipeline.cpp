@@ -1,0 +1,330 @@
+#include "pulsetrack/daemon/pipeline.hpp"
+
+#include <fmt/format.h>
+
+#include <cmath>
+#include <thread>
+
+#include "pulsetrack/rt/thread_policy.hpp"
+
+namespace pulsetrack::daemon {
+
+const char* toString(State s) {
+  switch (s) {
+    case State::kStarting:
+      return "starting";
+    case State::kOk:
+      return "ok";
+    case State::kDegraded:
+      return "degraded";
+    case State::kFault:
+      return "fault";
+  }
+  return "unknown";
+}
+
+namespace {
+
+constexpr const char* kFrameId = "pulsetrack_left_camera";
+
+geometry_msgs_msg_dds__Point_ point(const cv::Vec3d& mm) {
+  return {mm[0] * 1e-3, mm[1] * 1e-3, mm[2] * 1e-3};
+}
+geometry_msgs_msg_dds__Vector3_ vec(const cv::Vec3d& mm) {
+  return {mm[0] * 1e-3, mm[1] * 1e-3, mm[2] * 1e-3};
+}
+
+// Waits until `seq` differs from `seen` (futex, no lock) or `running` goes false.
+bool waitFor(std::atomic<uint64_t>& seq, uint64_t& seen, const std::atomic<bool>& running) {
+  while (running.load(std::memory_order_relaxed)) {
+    const uint64_t now = seq.load(std::memory_order_acquire);
+    if (now != seen) {
+      seen = now;
+      return true;
+    }
+    seq.wait(now, std::memory_order_acquire);
+  }
+  return false;
+}
+
+}  // namespace
+
+Pipeline::Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSource> source,
+                   const dds::Participant& participant)
+    : config_(config), source_(std::move(source)), participant_(participant) {
+  const cv::Size size = source_->rig().left.imageSize();
+  for (Frame& f : frames_.slots()) {
+    f.pair.left.create(size, CV_8UC1);
+    f.pair.right.create(size, CV_8UC1);
+  }
+  for (TrackResult& r : results_.slots())
+    r.features.reserve(static_cast<size_t>(config_.tracker.max_features));
+}
+
+Pipeline::~Pipeline() { stop(); }
+
+vision::Result<std::vector<std::string>> Pipeline::start() {
+  auto fw =
+      dds::Writer::create(participant_, dds::kFeaturesTopic,
+                          &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
+  if (!fw) return std::unexpected(fw.error());
+  auto dw =
+      dds::Writer::create(participant_, dds::kDeformationTopic,
+                          &pulsetrack_msgs_msg_dds__Deformation__desc, dds::Profile::kSensorData);
+  if (!dw) return std::unexpected(dw.error());
+  auto hw =
+      dds::Writer::create(participant_, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                          dds::Profile::kTransientLocal);
+  if (!hw) return std::unexpected(hw.error());
+  features_writer_ = std::move(*fw);
+  deformation_writer_ = std::move(*dw);
+  health_writer_ = std::move(*hw);
+  if (auto ok = source_->start(); !ok) return std::unexpected(ok.error());
+  std::vector<std::string> warnings;
+  if (config_.lock_memory) {
+    if (std::string w = rt::lockMemory(); !w.empty()) warnings.push_back(w);
+  }
+  running_ = true;
+  started_ns_ = rt::monotonicNs();
+  std::atomic<int> set_up{0};
+  std::vector<std::string> thread_warnings(3);
+  const auto with_policy = [&](int k, const char* name, const rt::ThreadPolicy& p, auto loop) {
+    return std::thread([this, k, name, p, loop, &set_up, &thread_warnings] {
+      thread_warnings[static_cast<size_t>(k)] = rt::applyThreadPolicy(name, p);
+      set_up.fetch_add(1);
+      set_up.notify_all();
+      (this->*loop)();
+    });
+  };
+  capture_ = with_policy(0, "pt-capture", config_.capture, &Pipeline::captureLoop);
+  track_ = with_policy(1, "pt-track", config_.track, &Pipeline::trackLoop);
+  publish_ = with_policy(2, "pt-publish", config_.publish, &Pipeline::publishLoop);
+  for (int v = set_up.load(); v < 3; v = set_up.load()) set_up.wait(v);
+  for (std::string& w : thread_warnings) {
+    if (!w.empty()) warnings.push_back(std::move(w));
+  }
+  return warnings;
+}
+
+void Pipeline::stop() {
+  if (!running_.exchange(false)) return;
+  frames_seq_.fetch_add(1);
+  frames_seq_.notify_all();
+  results_seq_.fetch_add(1);
+  results_seq_.notify_all();
+  for (std::thread* t : {&capture_, &track_, &publish_}) {
+    if (t->joinable()) t->join();
+  }
+  source_->stop();
+}
+
+void Pipeline::captureLoop() {
+  while (running_.load(std::memory_order_relaxed)) {
+    Frame& f = frames_.back();
+    const drivers::Next n = source_->next(f.pair, std::chrono::milliseconds(100));
+    const int64_t now = rt::monotonicNs();
+    capture_beat_.beat(now);
+    if (n == drivers::Next::kFrame) {
+      f.captured_ns = now;
+      capture_lat_.record(static_cast<uint64_t>(std::max<int64_t>(0, now - f.pair.t_left_ns)));
+      frames_.publish();
+    } else if (n == drivers::Next::kFault || n == drivers::Next::kEnd) {
+      if (!has_error_.load()) {
+        last_error_ = n == drivers::Next::kEnd ? "the source ended" : source_->lastFault();
+        has_error_.store(true);
+      }
+      source_faults_.fetch_add(1);
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    frames_seq_.fetch_add(1, std::memory_order_release);
+    frames_seq_.notify_one();
+  }
+}
+
+void Pipeline::trackLoop() {
+  vision::StereoTracker tracker(source_->rig(), config_.tracker);
+  bool initialized = false;
+  uint64_t seen = 0;
+  const auto deadline_ns = static_cast<int64_t>(config_.deadline_ms * 1e6);
+  while (running_.load(std::memory_order_relaxed)) {
+    track_beat_.beat();
+    // The capture stage bumps the sequence after every source call (a frame or a 100 ms
+    // timeout), so this stage beats while the source is quiet and sleeps on a futex otherwise.
+    if (!waitFor(frames_seq_, seen, running_)) break;
+    Frame* f = frames_.take();
+    if (f == nullptr) {
+      results_seq_.fetch_add(1, std::memory_order_release);  // the publish stage beats too
+      results_seq_.notify_one();
+      continue;
+    }
+    if (const int64_t stall = stall_ms_.exchange(0); stall > 0)
+      std::this_thread::sleep_for(std::chrono::milliseconds(stall));
+    TrackResult& r = results_.back();
+    r.redetected = false;
+    if (!initialized) {
+      auto ok =
+          tracker.initialize(f->pair.left, f->pair.right, config_.roi, config_.depth_tolerance_mm);
+      initialized = ok.has_value() && *ok > 0;
+      if (!initialized) continue;  // says why through health (no features): try next pair
+      r.redetected = true;
+    } else {
+      tracker.track(f->pair.left, f->pair.right);
+      if (tracker.needsRedetection()) {
+        r.redetected = tracker.redetect(f->pair.left, f->pair.right).has_value();
+      }
+    }
+    const int64_t done = rt::monotonicNs();
+    const auto feats = tracker.features();
+    r.features.assign(feats.begin(), feats.end());  // within the reserved capacity
+    r.ok = tracker.okCount();
+    r.trigger_seq = f->pair.trigger_seq;
+    r.t_ns = f->pair.t_left_ns;
+    r.captured_ns = f->captured_ns;
+    r.tracked_ns = done;
+    track_lat_.record(static_cast<uint64_t>(done - f->captured_ns));
+    if (done - f->pair.t_left_ns > deadline_ns) deadline_misses_.fetch_add(1);
+    ok_features_.store(r.ok);
+    total_features_.store(static_cast<int>(r.features.size()));
+    results_.publish();
+    tracked_.fetch_add(1);
+    results_seq_.fetch_add(1, std::memory_order_release);
+    results_seq_.notify_one();
+  }
+}
+
+void Pipeline::publishLoop() {
+  std::vector<pulsetrack_msgs_msg_dds__Feature_> list(
+      static_cast<size_t>(config_.tracker.max_features));
+  pulsetrack_msgs_msg_dds__Features_ fs{};
+  fs.header.frame_id = const_cast<char*>(kFrameId);
+  fs.rig_id = config_.rig_id.data();
+  fs.features._buffer = list.data();
+  fs.features._maximum = static_cast<uint32_t>(list.size());
+  fs.features._release = false;
+  pulsetrack_msgs_msg_dds__Deformation_ d{};
+  d.header.frame_id = const_cast<char*>(kFrameId);
+  d.rig_id = config_.rig_id.data();
+  cv::Vec3d reference(0, 0, 0), offset(0, 0, 0), last_disp(0, 0, 0);
+  bool have_reference = false;
+  int64_t last_t = 0;
+  uint64_t seen = 0;
+  while (running_.load(std::memory_order_relaxed)) {
+    publish_beat_.beat();
+    if (!waitFor(results_seq_, seen, running_)) break;
+    TrackResult* r = results_.take();
+    if (r == nullptr) continue;
+    const size_t n = std::min(r->features.size(), list.size());
+    cv::Vec3d sum(0, 0, 0);
+    int ok = 0;
+    for (size_t i = 0; i < n; ++i) {
+      const vision::Feature& f = r->features[i];
+      list[i].id = f.id;
+      list[i].status = static_cast<uint8_t>(f.status);
+      list[i].position = point(f.point);
+      list[i].displacement = vec(f.point - f.point0);
+      list[i].ncc = static_cast<float>(f.ncc);
+      list[i].nmi = static_cast<float>(f.nmi);
+      if (f.status == vision::FeatureStatus::kOk) {
+        sum += f.point;
+        ++ok;
+      }
+    }
+    fs.features._length = static_cast<uint32_t>(n);
+    fs.frame = r->trigger_seq;
+    fs.header.stamp = dds::stamp(r->t_ns);
+    (void)features_writer_.write(&fs);
+    if (ok > 0) {
+      const cv::Vec3d centroid = sum / ok;
+      // A new feature set has a new centroid: the displacement continues from where it was.
+      if (!have_reference || r->redetected) {
+        offset = have_reference ? last_disp : cv::Vec3d(0, 0, 0);
+        reference = centroid;
+        have_reference = true;
+      }
+      const cv::Vec3d disp = centroid - reference + offset;
+      const double dt = last_t != 0 ? static_cast<double>(r->t_ns - last_t) * 1e-9 : 0.0;
+      const cv::Vec3d vel = dt > 0 ? (disp - last_disp) / dt : cv::Vec3d(0, 0, 0);
+      d.frame = r->trigger_seq;
+      d.header.stamp = dds::stamp(r->t_ns);
+      d.centroid = point(centroid);
+      d.displacement = vec(disp);
+      d.velocity = vec(vel);
+      d.features_ok = static_cast<uint32_t>(ok);
+      d.features_total = static_cast<uint32_t>(n);
+      (void)deformation_writer_.write(&d);
+      last_disp = disp;
+      last_t = r->t_ns;
+    }
+    publish_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - r->tracked_ns));
+  }
+}
+
+State Pipeline::health(const Notifier& notifier) {
+  const int64_t now = rt::monotonicNs();
+  // A stage is on time when it beat within the health period (at least 1 s: the sim source
+  // renders slowly on this machine) .
+  const int64_t max_age =
+      std::max<int64_t>(1'000'000'000, int64_t{config_.health_period_ms} * 2'000'000);
+  const rt::Heartbeat* stages[] = {&capture_beat_, &track_beat_, &publish_beat_};
+  bool stalled = false;
+  for (const rt::Heartbeat* h : stages) stalled = stalled || !h->alive(now, max_age);
+  const bool error = has_error_.load();
+  State state = State::kOk;
+  if (!trackedOnce())
+    state = stalled && now - started_ns_ > 10 * max_age ? State::kFault : State::kStarting;
+  else if (stalled)
+    state = State::kFault;
+  else if (error || ok_features_.load() < 3)
+    state = State::kDegraded;
+  if (trackedOnce() && !said_ready_) {
+    notifier.ready();
+    said_ready_ = true;
+  }
+  if (!stalled) (void)notifier.pingIfHealthy(stages, std::chrono::nanoseconds(max_age));
+  const double secs = static_cast<double>(now - started_ns_) * 1e-9;
+  const double fps = secs > 0 ? static_cast<double>(tracked()) / secs : 0.0;
+  const std::string line =
+      fmt::format("{}: {} of {} features ok, {:.1f} fps, {} drops, track p99 {} us",
+                  toString(state), ok_features_.load(), total_features_.load(), fps,
+                  frames_.drops() + results_.drops(), track_lat_.percentileNs(0.99) / 1000);
+  notifier.status(line);
+
+  pulsetrack_msgs_msg_dds__StageLatency_ st[3]{};
+  const rt::LatencyHistogram* hist[] = {&capture_lat_, &track_lat_, &publish_lat_};
+  const char* names[] = {"capture", "track", "publish"};
+  for (int i = 0; i < 3; ++i) {
+    st[i].stage = const_cast<char*>(names[i]);
+    st[i].p50_us = static_cast<uint32_t>(hist[i]->percentileNs(0.5) / 1000);
+    st[i].p99_us = static_cast<uint32_t>(hist[i]->percentileNs(0.99) / 1000);
+    st[i].max_us = static_cast<uint32_t>(hist[i]->maxNs() / 1000);
+  }
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  h.header.frame_id = const_cast<char*>(kFrameId);
+  h.header.stamp = dds::stamp(now);
+  h.rig_id = config_.rig_id.data();
+  h.state = static_cast<uint8_t>(state);
+  std::string state_text = line;
+  h.state_text = state_text.data();
+  h.stages._buffer = st;
+  h.stages._length = 3;
+  h.stages._maximum = 3;
+  h.stages._release = false;
+  h.fps = static_cast<float>(fps);
+  h.frames = tracked();
+  h.drops = frames_.drops() + results_.drops();
+  h.deadline_misses = deadline_misses_.load();
+  const drivers::SourceCounters sc = source_->counters();
+  h.missing_triggers = sc.missing_triggers;
+  h.unpaired = 0;
+  std::string source_name = source_->name();
+  h.source = source_name.data();
+  std::string source_state = has_error_.load() ? "fault" : "running";
+  h.source_state = source_state.data();
+  h.trigger_state = const_cast<char*>("software");
+  std::string err = has_error_.load() ? last_error_ : std::string();
+  h.last_error = err.data();
+  (void)health_writer_.write(&h);
+  return state;
+}
+
+}  // namespace pulsetrack::daemon

@@ -1,0 +1,218 @@
+// End to end: pulsetrackd as a real process on the simulated rig; this process subscribes over
+// Cyclone DDS on loopback (own domain id), checks the features against the simulator's ground
+// truth, and plays systemd on a notify socket it binds: READY=1, WATCHDOG=1 while healthy,
+// the pings stopping and health going to fault when the track stage stalls.
+
+#include <gtest/gtest.h>
+#include <spawn.h>
+#include <sys/socket.h>
+#include <sys/un.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <fstream>
+#include <functional>
+#include <map>
+#include <thread>
+
+#include "pulsetrack/dds/dds.hpp"
+#include "pulsetrack/sim/scene.hpp"
+#include "pulsetrack/vision/stereo_rig.hpp"
+#include "test_util.hpp"
+
+extern char** environ;
+
+namespace pulsetrack {
+namespace {
+
+constexpr const char* kLoopback =
+    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/>"
+    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>"
+    "auto</ParticipantIndex><Peers><Peer Address=\"127.0.0.1\"/></Peers></Discovery></Domain>"
+    "</CycloneDDS>";
+
+const std::string kScene = std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-60s.toml";
+
+struct Daemon {
+  pid_t pid = 0;
+  int notify_fd = -1;
+  std::vector<std::pair<double, std::string>> notes;  // (seconds since start, datagram)
+
+  Daemon(const test::TempDir& dir, uint32_t domain, const std::vector<std::string>& extra) {
+    const auto cfg = dir.path() / "pulsetrackd.toml";
+    std::ofstream(cfg) << "rig_id = \"rig-e2e\"\n[dds]\ndomain_id = " << domain
+                       << "\n[source]\nkind = \"sim\"\nscene = \"" << kScene
+                       << "\"\nfps = 10.0\n[realtime]\nlock_memory = false\n"
+                          "capture = { priority = 0 }\ntrack = { priority = 0 }\n"
+                          "publish = { priority = 0 }\n[health]\nperiod_ms = 200\n";
+    const std::string sock = (dir.path() / "notify").string();
+    notify_fd = socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC | SOCK_NONBLOCK, 0);
+    sockaddr_un a{};
+    a.sun_family = AF_UNIX;
+    sock.copy(a.sun_path, sizeof a.sun_path - 1);
+    EXPECT_EQ(bind(notify_fd, reinterpret_cast<sockaddr*>(&a), sizeof a), 0);
+    setenv("CYCLONEDDS_URI", kLoopback, 1);
+    setenv("NOTIFY_SOCKET", sock.c_str(), 1);
+    setenv("WATCHDOG_USEC", "1000000", 1);
+    unsetenv("WATCHDOG_PID");
+    std::vector<std::string> args = {PULSETRACKD, "-c", cfg.string()};
+    args.insert(args.end(), extra.begin(), extra.end());
+    std::vector<char*> argv;
+    for (auto& s : args) argv.push_back(s.data());
+    argv.push_back(nullptr);
+    EXPECT_EQ(posix_spawn(&pid, PULSETRACKD, nullptr, nullptr, argv.data(), environ), 0);
+    unsetenv("NOTIFY_SOCKET");
+    unsetenv("WATCHDOG_USEC");
+  }
+  void drain(double t) {
+    char buf[4096];
+    for (;;) {
+      const ssize_t n = recv(notify_fd, buf, sizeof buf, 0);
+      if (n <= 0) return;
+      notes.emplace_back(t, std::string(buf, static_cast<size_t>(n)));
+    }
+  }
+  // Waits for the daemon to exit, reading its notifications meanwhile (a full datagram queue
+  // would block its sd_notify, as it would under a systemd that stopped reading).
+  int wait(const std::function<double()>& secs) {
+    int status = 0;
+    for (;;) {
+      drain(secs());
+      const pid_t r = waitpid(pid, &status, WNOHANG);
+      if (r == pid) break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    drain(secs());
+    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  }
+  ~Daemon() {
+    if (notify_fd >= 0) close(notify_fd);
+  }
+  Daemon(const Daemon&) = delete;
+  Daemon& operator=(const Daemon&) = delete;
+};
+
+TEST(Daemon, PublishesTrackedFeaturesThatMatchTheGroundTruthAndTalksToSystemd) {
+  test::TempDir dir;
+  const uint32_t domain = 73;
+  Daemon d(dir, domain, {"--run-for", "10"});
+  auto p = dds::Participant::create(domain);
+  ASSERT_TRUE(p) << p.error().message;
+  auto features = dds::Reader::create(
+      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
+  auto deformation =
+      dds::Reader::create(*p, dds::kDeformationTopic, &pulsetrack_msgs_msg_dds__Deformation__desc,
+                          dds::Profile::kSensorData);
+  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                                    dds::Profile::kTransientLocal);
+  ASSERT_TRUE(features && deformation && health);
+
+  auto spec = sim::loadScene(kScene);
+  ASSERT_TRUE(spec);
+  auto rig = vision::loadRig(spec->rig_path);
+  ASSERT_TRUE(rig);
+  sim::StereoSimulator truth(*spec, *rig);
+
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  pulsetrack_msgs_msg_dds__Features_ f{};
+  pulsetrack_msgs_msg_dds__Deformation_ def{};
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  int samples = 0, scored = 0, within = 0, deformations = 0;
+  double worst = 0;
+  std::map<int, int> health_states;
+  while (secs() < 9.0) {
+    d.drain(secs());
+    if (features->takeOne(&f, std::chrono::milliseconds(50))) {
+      ++samples;
+      EXPECT_STREQ(f.rig_id, "rig-e2e");
+      const double t = truth.frameTime(static_cast<int>(f.frame % 600));
+      for (uint32_t i = 0; i < f.features._length; ++i) {
+        const auto& ft = f.features._buffer[i];
+        if (ft.status != 0) continue;
+        const cv::Vec3d mm(ft.position.x * 1e3, ft.position.y * 1e3, ft.position.z * 1e3);
+        cv::Vec2d uv;
+        if (!truth.cortex()->materialAt(*rig, rig->projectLeft(mm), t, uv)) continue;
+        // The surface point under the feature's pixel: the 3D error along the ray and across.
+        const double e = cv::norm(truth.cortex()->position(uv[0], uv[1], t) - mm);
+        worst = std::max(worst, e);
+        ++scored;
+        within += e < 0.5 ? 1 : 0;
+      }
+    }
+    while (deformation->takeOne(&def, std::chrono::milliseconds(0))) {
+      ++deformations;
+      EXPECT_GT(def.features_ok, 10U);
+      EXPECT_NEAR(def.centroid.z, 0.45, 0.05);
+    }
+    while (health->takeOne(&h, std::chrono::milliseconds(0))) ++health_states[h.state];
+  }
+  EXPECT_EQ(d.wait(secs), 0);
+  std::cout << "e2e: " << samples << " feature samples, " << deformations << " deformation, "
+            << scored << " ok features scored, " << within << " within 0.5 mm of the truth "
+            << "(worst " << worst << " mm), health states:";
+  for (const auto& [s, n] : health_states) std::cout << " " << s << "x" << n;
+  std::cout << "\n";
+  // 10 fps here; a sanitizer build renders a few pairs per second.
+  EXPECT_GE(samples, 10);
+  EXPECT_GE(deformations, 10);
+  EXPECT_GT(scored, 500);
+  EXPECT_GE(within, scored * 99 / 100);
+  EXPECT_GT(health_states[1], 3);  // ok
+  bool ready = false, ping = false, status = false;
+  for (const auto& [t, s] : d.notes) {
+    ready = ready || s == "READY=1";
+    ping = ping || s == "WATCHDOG=1";
+    status = status || s.rfind("STATUS=ok: ", 0) == 0;
+  }
+  EXPECT_TRUE(ready);
+  EXPECT_TRUE(ping);
+  EXPECT_TRUE(status);
+  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
+  dds_sample_free(&def, &pulsetrack_msgs_msg_dds__Deformation__desc, DDS_FREE_CONTENTS);
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+}
+
+TEST(Daemon, AStalledTrackStageStopsTheWatchdogAndHealthSaysFault) {
+  test::TempDir dir;
+  const uint32_t domain = 74;
+  Daemon d(dir, domain, {"--run-for", "12", "--stall-track-after", "10"});
+  auto p = dds::Participant::create(domain);
+  ASSERT_TRUE(p);
+  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                                    dds::Profile::kTransientLocal);
+  ASSERT_TRUE(health);
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  bool fault = false, ok_after_fault = false;
+  while (secs() < 11.5) {
+    d.drain(secs());
+    if (health->takeOne(&h, std::chrono::milliseconds(50))) {
+      if (h.state == 3) fault = true;
+      if (fault && h.state == 1) ok_after_fault = true;
+    }
+  }
+  EXPECT_EQ(d.wait(secs), 0);
+  // The longest gap between watchdog pings after the first: the 5 s stall.
+  double last = -1, longest = 0;
+  for (const auto& [t, s] : d.notes) {
+    if (s != "WATCHDOG=1") continue;
+    if (last >= 0) longest = std::max(longest, t - last);
+    last = t;
+  }
+  std::cout << "stall: longest gap between WATCHDOG=1 " << longest << " s, health fault seen "
+            << fault << ", ok again " << ok_after_fault << "\n";
+  EXPECT_TRUE(fault);
+  EXPECT_TRUE(ok_after_fault);
+  EXPECT_GT(longest, 2.0);
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+}
+
+}  // namespace
+}  // namespace pulsetrack
