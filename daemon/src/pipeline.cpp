@@ -182,7 +182,7 @@ void Pipeline::trackLoop() {
     r.captured_ns = f->captured_ns;
     r.tracked_ns = done;
     track_lat_.record(static_cast<uint64_t>(done - f->captured_ns));
-    if (done - f->pair.t_left_ns > deadline_ns) deadline_misses_.fetch_add(1);
+    if (done - f->captured_ns > deadline_ns) deadline_misses_.fetch_add(1);
     ok_features_.store(r.ok);
     total_features_.store(static_cast<int>(r.features.size()));
     results_.publish();
@@ -204,7 +204,7 @@ void Pipeline::publishLoop() {
   pulsetrack_msgs_msg_dds__Deformation_ d{};
   d.header.frame_id = const_cast<char*>(kFrameId);
   d.rig_id = config_.rig_id.data();
-  cv::Vec3d reference(0, 0, 0), offset(0, 0, 0), last_disp(0, 0, 0);
+  cv::Vec3d offset(0, 0, 0), last_disp(0, 0, 0);
   bool have_reference = false;
   int64_t last_t = 0;
   uint64_t seen = 0;
@@ -214,7 +214,7 @@ void Pipeline::publishLoop() {
     TrackResult* r = results_.take();
     if (r == nullptr) continue;
     const size_t n = std::min(r->features.size(), list.size());
-    cv::Vec3d sum(0, 0, 0);
+    cv::Vec3d sum(0, 0, 0), moved(0, 0, 0);
     int ok = 0;
     for (size_t i = 0; i < n; ++i) {
       const vision::Feature& f = r->features[i];
@@ -226,6 +226,7 @@ void Pipeline::publishLoop() {
       list[i].nmi = static_cast<float>(f.nmi);
       if (f.status == vision::FeatureStatus::kOk) {
         sum += f.point;
+        moved += f.point - f.point0;
         ++ok;
       }
     }
@@ -235,13 +236,14 @@ void Pipeline::publishLoop() {
     (void)features_writer_.write(&fs);
     if (ok > 0) {
       const cv::Vec3d centroid = sum / ok;
-      // A new feature set has a new centroid: the displacement continues from where it was.
+      // The displacement is the mean of the ok features' own displacements, not the centroid's
+      // change: that would jump whenever features drop out (an instrument) or come back. New
+      // features (re-detection) start at zero: the displacement continues from where it was.
       if (!have_reference || r->redetected) {
         offset = have_reference ? last_disp : cv::Vec3d(0, 0, 0);
-        reference = centroid;
         have_reference = true;
       }
-      const cv::Vec3d disp = centroid - reference + offset;
+      const cv::Vec3d disp = moved / ok + offset;
       const double dt = last_t != 0 ? static_cast<double>(r->t_ns - last_t) * 1e-9 : 0.0;
       const cv::Vec3d vel = dt > 0 ? (disp - last_disp) / dt : cv::Vec3d(0, 0, 0);
       d.frame = r->trigger_seq;

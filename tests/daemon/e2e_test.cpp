@@ -59,6 +59,7 @@ struct Daemon {
     std::vector<std::string> args = {PULSETRACKD, "-c", cfg.string()};
     args.insert(args.end(), extra.begin(), extra.end());
     std::vector<char*> argv;
+    argv.reserve(args.size() + 1);
     for (auto& s : args) argv.push_back(s.data());
     argv.push_back(nullptr);
     EXPECT_EQ(posix_spawn(&pid, PULSETRACKD, nullptr, nullptr, argv.data(), environ), 0);

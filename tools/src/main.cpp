@@ -21,6 +21,7 @@ int main(int argc, char** argv) try {
   runners["evaluate"] = pulsetrack::tools::addEvaluateCommand(app);
   runners["match"] = pulsetrack::tools::addMatchCommand(app);
   runners["track"] = pulsetrack::tools::addTrackCommand(app);
+  runners["listen"] = pulsetrack::tools::addListenCommand(app);
   CLI11_PARSE(app, argc, argv);
   for (const CLI::App* sub : app.get_subcommands()) {
     return runners.at(sub->get_name())();

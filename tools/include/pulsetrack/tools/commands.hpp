@@ -15,5 +15,6 @@ CommandRunner addSimulateCommand(CLI::App& app);
 CommandRunner addEvaluateCommand(CLI::App& app);
 CommandRunner addMatchCommand(CLI::App& app);
 CommandRunner addTrackCommand(CLI::App& app);
+CommandRunner addListenCommand(CLI::App& app);
 
 }  // namespace pulsetrack::tools
