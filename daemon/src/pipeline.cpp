@@ -100,6 +100,7 @@ vision::Result<std::vector<std::string>> Pipeline::start() {
   track_ = with_policy(1, "pt-track", config_.track, &Pipeline::trackLoop);
   publish_ = with_policy(2, "pt-publish", config_.publish, &Pipeline::publishLoop);
   for (int v = set_up.load(); v < 3; v = set_up.load()) set_up.wait(v);
+  command_ = std::thread([this] { commandLoop(); });
   for (std::string& w : thread_warnings) {
     if (!w.empty()) warnings.push_back(std::move(w));
   }
@@ -112,7 +113,7 @@ void Pipeline::stop() {
   frames_seq_.notify_all();
   results_seq_.fetch_add(1);
   results_seq_.notify_all();
-  for (std::thread* t : {&capture_, &track_, &publish_}) {
+  for (std::thread* t : {&capture_, &track_, &publish_, &command_}) {
     if (t->joinable()) t->join();
   }
   source_->stop();
@@ -145,6 +146,8 @@ void Pipeline::trackLoop() {
   vision::StereoTracker tracker(source_->rig(), config_.tracker);
   bool initialized = false;
   uint64_t seen = 0;
+  vision::Roi roi = config_.roi;
+  double depth = config_.depth_tolerance_mm;
   const auto deadline_ns = static_cast<int64_t>(config_.deadline_ms * 1e6);
   while (running_.load(std::memory_order_relaxed)) {
     track_beat_.beat();
@@ -152,20 +155,37 @@ void Pipeline::trackLoop() {
     // timeout), so this stage beats while the source is quiet and sleeps on a futex otherwise.
     if (!waitFor(frames_seq_, seen, running_)) break;
     Frame* f = frames_.take();
-    if (f == nullptr) {
-      results_seq_.fetch_add(1, std::memory_order_release);  // the publish stage beats too
+    // Without a result the publish stage is still woken, so that it beats too.
+    const auto wake_publish = [this] {
+      results_seq_.fetch_add(1, std::memory_order_release);
       results_seq_.notify_one();
+    };
+    if (f == nullptr) {
+      wake_publish();
       continue;
     }
     if (const int64_t stall = stall_ms_.exchange(0); stall > 0)
       std::this_thread::sleep_for(std::chrono::milliseconds(stall));
+    if (const RoiRequest* req = roi_requests_.take()) {
+      roi = req->roi;
+      depth = req->depth_mm;
+      initialized = false;  // detect in the new ROI
+    }
+    if (paused_.load()) {
+      initialized = false;  // start detects afresh
+      wake_publish();
+      continue;
+    }
     TrackResult& r = results_.back();
     r.redetected = false;
+    if (initialized && redetect_requested_.exchange(false)) initialized = false;
     if (!initialized) {
-      auto ok =
-          tracker.initialize(f->pair.left, f->pair.right, config_.roi, config_.depth_tolerance_mm);
+      auto ok = tracker.initialize(f->pair.left, f->pair.right, roi, depth);
       initialized = ok.has_value() && *ok > 0;
-      if (!initialized) continue;  // says why through health (no features): try next pair
+      if (!initialized) {  // no features (health says so): try the next pair
+        wake_publish();
+        continue;
+      }
       r.redetected = true;
     } else {
       tracker.track(f->pair.left, f->pair.right);
@@ -261,6 +281,61 @@ void Pipeline::publishLoop() {
   }
 }
 
+std::string Pipeline::command(const pulsetrack_msgs_msg_dds__Command_& c) {
+  const std::string what = c.command != nullptr ? c.command : "";
+  std::string why;
+  if (c.rig_id == nullptr || config_.rig_id != c.rig_id) {
+    return {};  // another rig's: not ours to answer
+  }
+  if (what == "start") {
+    paused_.store(false);
+  } else if (what == "stop") {
+    paused_.store(true);
+  } else if (what == "redetect") {
+    redetect_requested_.store(true);
+  } else if (what == "set_roi") {
+    const cv::Size size = source_->rig().left.imageSize();
+    const cv::Rect frame(0, 0, size.width, size.height);
+    const cv::Rect l(c.roi_left[0], c.roi_left[1], c.roi_left[2], c.roi_left[3]);
+    const cv::Rect r(c.roi_right[0], c.roi_right[1], c.roi_right[2], c.roi_right[3]);
+    const double depth_mm = c.depth_tolerance_m * 1e3;
+    if (l.width < 30 || l.height < 30 || r.width < 30 || r.height < 30 || (l & frame) != l ||
+        (r & frame) != r) {
+      why = fmt::format("ROIs must lie inside the {}x{} image, at least 30 px a side", size.width,
+                        size.height);
+    } else if (!(depth_mm > 0.0 && depth_mm <= 500.0)) {
+      why = "the depth tolerance must be in (0, 0.5] m";
+    } else {
+      roi_requests_.back() = {{l, r}, depth_mm};
+      roi_requests_.publish();
+    }
+  } else {
+    why = "unknown command (start, stop, redetect, set_roi)";
+  }
+  if (!why.empty()) {
+    // What was sent is quoted printable-only and short: the health topic is not an echo.
+    std::string shown;
+    for (const char ch : what.substr(0, 32)) shown += (ch >= 32 && ch < 127) ? ch : '?';
+    why = fmt::format("command {} '{}' refused: {}", c.request_id, shown, why);
+    commands_refused_.fetch_add(1);
+    command_errors_.back() = why;
+    command_errors_.publish();
+  }
+  return why;
+}
+
+void Pipeline::commandLoop() {
+  auto reader =
+      dds::Reader::create(participant_, dds::kCommandTopic, &pulsetrack_msgs_msg_dds__Command__desc,
+                          dds::Profile::kCommand);
+  if (!reader) return;
+  pulsetrack_msgs_msg_dds__Command_ c{};
+  while (running_.load()) {
+    if (reader->takeOne(&c, std::chrono::milliseconds(100))) (void)command(c);
+  }
+  dds_sample_free(&c, &pulsetrack_msgs_msg_dds__Command__desc, DDS_FREE_CONTENTS);
+}
+
 State Pipeline::health(const Notifier& notifier) {
   const int64_t now = rt::monotonicNs();
   // A stage is on time when it beat within the health period (at least 1 s: the sim source
@@ -320,10 +395,11 @@ State Pipeline::health(const Notifier& notifier) {
   h.unpaired = 0;
   std::string source_name = source_->name();
   h.source = source_name.data();
-  std::string source_state = has_error_.load() ? "fault" : "running";
+  std::string source_state = has_error_.load() ? "fault" : paused_.load() ? "paused" : "running";
   h.source_state = source_state.data();
   h.trigger_state = const_cast<char*>("software");
-  std::string err = has_error_.load() ? last_error_ : std::string();
+  if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
+  std::string err = has_error_.load() ? last_error_ : last_refusal_;
   h.last_error = err.data();
   (void)health_writer_.write(&h);
   return state;

@@ -11,6 +11,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <csignal>
 #include <fstream>
 #include <functional>
 #include <map>
@@ -212,6 +213,101 @@ TEST(Daemon, AStalledTrackStageStopsTheWatchdogAndHealthSaysFault) {
   EXPECT_TRUE(fault);
   EXPECT_TRUE(ok_after_fault);
   EXPECT_GT(longest, 2.0);
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+}
+
+// The capture cycle over the command topic, by `pulsetrack ctl` and by raw samples: redetect
+// gives new ids, stop stops the features, start resumes them; garbage and a flood are refused
+// and reported on health, and the daemon stays ok.
+TEST(Daemon, CaptureCycleCommandsAndGarbage) {
+  test::TempDir dir;
+  const uint32_t domain = 76;
+  Daemon d(dir, domain, {"--run-for", "25"});
+  auto p = dds::Participant::create(domain);
+  ASSERT_TRUE(p);
+  auto features = dds::Reader::create(
+      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
+  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                                    dds::Profile::kTransientLocal);
+  auto commands = dds::Writer::create(
+      *p, dds::kCommandTopic, &pulsetrack_msgs_msg_dds__Command__desc, dds::Profile::kCommand);
+  ASSERT_TRUE(features && health && commands);
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  pulsetrack_msgs_msg_dds__Features_ f{};
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  // Features for `seconds`: how many samples, and the largest feature id seen.
+  const auto collect = [&](double seconds, int& samples, int& max_id) {
+    samples = 0;
+    max_id = -1;
+    const double until = secs() + seconds;
+    while (secs() < until) {
+      d.drain(secs());
+      if (!features->takeOne(&f, std::chrono::milliseconds(50))) continue;
+      ++samples;
+      for (uint32_t i = 0; i < f.features._length; ++i)
+        max_id = std::max(max_id, f.features._buffer[i].id);
+    }
+  };
+  const std::string ctl =
+      test::cli() + " ctl --domain " + std::to_string(domain) + " --rig rig-e2e ";
+  int n = 0, id0 = 0, id1 = 0, id2 = 0;
+  collect(3.0, n, id0);
+  ASSERT_GT(n, 3);
+  auto r = test::run(ctl + "redetect");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  collect(2.0, n, id1);
+  EXPECT_GT(id1, id0);  // new features, new ids
+  r = test::run(ctl + "stop");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  collect(0.5, n, id2);  // in flight
+  collect(1.5, n, id2);
+  EXPECT_EQ(n, 0);
+  r = test::run(ctl + "start");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  collect(2.0, n, id2);
+  EXPECT_GT(n, 3);
+  EXPECT_GT(id2, id1);  // start detects afresh
+
+  // Garbage: an unknown command with control bytes, a bad ROI, and a flood of them.
+  pulsetrack_msgs_msg_dds__Command_ c{};
+  std::string rig = "rig-e2e", bad = "rm -rf /\x01\x02", set = "set_roi";
+  c.rig_id = rig.data();
+  c.command = bad.data();
+  c.request_id = 4242;
+  ASSERT_TRUE(commands->write(&c));
+  for (uint32_t k = 0; k < 2000; ++k) {
+    c.request_id = 10000 + k;
+    c.command = (k % 2) != 0U ? set.data() : bad.data();
+    c.roi_left[2] = -5;
+    (void)commands->write(&c);
+  }
+  bool refused_seen = false;
+  int ok_after = 0;
+  const double until = secs() + 4.0;
+  while (secs() < until) {
+    d.drain(secs());
+    while (health->takeOne(&h, std::chrono::milliseconds(20))) {
+      const std::string err = h.last_error;
+      if (err.find("refused") != std::string::npos) refused_seen = true;
+      EXPECT_EQ(err.find('\x01'), std::string::npos) << err;  // not echoed raw
+      if (refused_seen && h.state == 1) ++ok_after;
+    }
+    (void)features->takeOne(&f, std::chrono::milliseconds(10));
+  }
+  EXPECT_TRUE(refused_seen);
+  EXPECT_GT(ok_after, 2);  // still tracking, still ok
+  // ctl itself refuses what it cannot send.
+  r = test::run(ctl + "set-roi");
+  EXPECT_EQ(r.exit_code, 2) << r.output;
+  r = test::run(test::cli() + " ctl --domain " + std::to_string(domain + 1) + " stop");
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("no pulsetrackd is listening"), std::string::npos) << r.output;
+  kill(d.pid, SIGTERM);
+  EXPECT_EQ(d.wait(secs), 0);
+  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
   dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 

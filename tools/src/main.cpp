@@ -22,6 +22,7 @@ int main(int argc, char** argv) try {
   runners["match"] = pulsetrack::tools::addMatchCommand(app);
   runners["track"] = pulsetrack::tools::addTrackCommand(app);
   runners["listen"] = pulsetrack::tools::addListenCommand(app);
+  runners["ctl"] = pulsetrack::tools::addCtlCommand(app);
   CLI11_PARSE(app, argc, argv);
   for (const CLI::App* sub : app.get_subcommands()) {
     return runners.at(sub->get_name())();

@@ -66,10 +66,19 @@ class Pipeline {
   // Test hook: stall the track stage (the watchdog must notice).
   void stallTrackFor(std::chrono::milliseconds d) { stall_ms_.store(d.count()); }
 
+  // The capture cycle (the paper's), from the command topic or `pulsetrack ctl`: stop (frames
+  // are captured, not tracked), start (tracking resumes with a fresh detection), redetect,
+  // set_roi. A command that cannot be applied is refused with a reason, reported on health.
+  // Called from the command thread; hands over to the track stage without a lock.
+  // Returns "" when accepted, else the reason.
+  std::string command(const pulsetrack_msgs_msg_dds__Command_& c);
+  [[nodiscard]] uint64_t commandsRefused() const { return commands_refused_.load(); }
+
  private:
   void captureLoop();
   void trackLoop();
   void publishLoop();
+  void commandLoop();
 
   DaemonConfig config_;
   std::unique_ptr<drivers::CameraSource> source_;
@@ -83,6 +92,16 @@ class Pipeline {
   std::atomic<uint64_t> tracked_{0}, deadline_misses_{0}, source_faults_{0};
   std::atomic<bool> running_{false};
   std::atomic<int64_t> stall_ms_{0};
+  struct RoiRequest {
+    vision::Roi roi;
+    double depth_mm = 0;
+  };
+  rt::LatestSlot<RoiRequest> roi_requests_;
+  std::atomic<bool> paused_{false}, redetect_requested_{false};
+  std::atomic<uint64_t> commands_refused_{0};
+  rt::LatestSlot<std::string> command_errors_;  // the last refusal, for health
+  std::string last_refusal_;                    // health thread's copy
+  std::thread command_;
   std::atomic<int> ok_features_{0}, total_features_{0};
   std::string last_error_;  // written by the capture thread before its beat stops
   std::atomic<bool> has_error_{false};

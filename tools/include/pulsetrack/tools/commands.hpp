@@ -16,5 +16,6 @@ CommandRunner addEvaluateCommand(CLI::App& app);
 CommandRunner addMatchCommand(CLI::App& app);
 CommandRunner addTrackCommand(CLI::App& app);
 CommandRunner addListenCommand(CLI::App& app);
+CommandRunner addCtlCommand(CLI::App& app);
 
 }  // namespace pulsetrack::tools
