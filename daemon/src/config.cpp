@@ -69,8 +69,9 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     c.scene = path.parent_path() / scene;
     if (!recording.empty()) c.recording = path.parent_path() / recording;
     c.fps = s.number("fps", c.fps, 0.1, 1000.0);
-    c.pace = s.string("pace", "realtime", {"realtime", "fast"}) == "fast" ? Pace::kFast
-                                                                          : Pace::kRealtime;
+    const std::string pace = s.string("pace", "realtime", {"realtime", "fast", "rate"});
+    c.pace = pace == "fast" ? Pace::kFast : pace == "rate" ? Pace::kRate : Pace::kRealtime;
+    c.preload = s.boolean("preload", c.preload);
     c.loop = s.boolean("loop", c.loop);
     s.finish();
     if (c.source == SourceKind::kReplay && c.recording.empty() && error.empty())

@@ -58,8 +58,14 @@ int run(int argc, char** argv) {
     scene->supersample = 1;  // live rendering
     source = drivers::makeSimSource(*scene, *rig, config->fps, config->loop);
   } else {
-    auto r = drivers::makeReplaySource(config->recording, config->pace == daemon::Pace::kRealtime,
-                                       config->loop);
+    drivers::ReplayOptions o;
+    o.pace = config->pace == daemon::Pace::kFast   ? drivers::ReplayOptions::Pace::kFast
+             : config->pace == daemon::Pace::kRate ? drivers::ReplayOptions::Pace::kRate
+                                                   : drivers::ReplayOptions::Pace::kRecorded;
+    o.fps = config->fps;
+    o.loop = config->loop;
+    o.preload = config->preload;
+    auto r = drivers::makeReplaySource(config->recording, o);
     if (!r) {
       std::fprintf(stderr, "pulsetrackd: %s\n", r.error().message.c_str());
       return 1;

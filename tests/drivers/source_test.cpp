@@ -74,7 +74,7 @@ TEST(ReplaySource, FramesAsRecordedGapsCountedEndAndLoop) {
   }
   ASSERT_TRUE(w->close());
 
-  auto src = makeReplaySource(path, /*realtime=*/true, /*loop=*/false);
+  auto src = makeReplaySource(path, {});  // at the recorded pace, once
   ASSERT_TRUE(src) << src.error().message;
   ASSERT_TRUE((*src)->start());
   StereoFrame f;
@@ -89,15 +89,37 @@ TEST(ReplaySource, FramesAsRecordedGapsCountedEndAndLoop) {
   EXPECT_EQ((*src)->counters().missing_triggers, 1U);
   EXPECT_EQ((*src)->next(f, std::chrono::milliseconds(10)), Next::kEnd);
 
-  auto fast = makeReplaySource(path, false, /*loop=*/true);
+  ReplayOptions fast_loop;
+  fast_loop.pace = ReplayOptions::Pace::kFast;
+  fast_loop.loop = true;
+  auto fast = makeReplaySource(path, fast_loop);
   ASSERT_TRUE(fast);
   ASSERT_TRUE((*fast)->start());
   for (int i = 0; i < 5; ++i)
     ASSERT_EQ((*fast)->next(f, std::chrono::milliseconds(10)), Next::kFrame);
-  EXPECT_EQ(f.trigger_seq, 0U);  // looped to the start
+  EXPECT_EQ(f.trigger_seq, 5U);  // looped to the start; the sequence goes on past the end (4)
   EXPECT_EQ(cv::norm(f.left, lefts[0], cv::NORM_INF), 0.0);
 
-  auto missing = makeReplaySource(dir.path() / "nothing", false, false);
+  // From memory, at a rate, restamped as a live camera would (the latency benchmark's source).
+  ReplayOptions rate;
+  rate.pace = ReplayOptions::Pace::kRate;
+  rate.fps = 50.0;
+  rate.loop = true;
+  rate.preload = true;
+  auto live = makeReplaySource(path, rate);
+  ASSERT_TRUE(live) << live.error().message;
+  ASSERT_TRUE((*live)->start());
+  int64_t first = 0;
+  for (int i = 0; i < 6; ++i) {
+    ASSERT_EQ((*live)->next(f, std::chrono::milliseconds(1000)), Next::kFrame);
+    EXPECT_EQ(f.trigger_seq, static_cast<uint64_t>(i));
+    EXPECT_LE(f.t_left_ns, rt::monotonicNs());
+    if (i == 0) first = f.t_left_ns;
+    EXPECT_EQ(cv::norm(f.left, lefts[static_cast<size_t>(i % 4)], cv::NORM_INF), 0.0);
+  }
+  EXPECT_GE(f.t_left_ns - first, 5 * 20'000'000 - 1'000'000);  // 50 Hz
+
+  auto missing = makeReplaySource(dir.path() / "nothing", {});
   ASSERT_FALSE(missing);
   EXPECT_NE(missing.error().message.find("nothing"), std::string::npos) << missing.error().message;
 }

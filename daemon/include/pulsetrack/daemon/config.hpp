@@ -11,7 +11,7 @@
 namespace pulsetrack::daemon {
 
 enum class SourceKind { kSim, kReplay };
-enum class Pace { kRealtime, kFast };
+enum class Pace { kRealtime, kFast, kRate };
 
 struct DaemonConfig {
   std::string rig_id = "rig-0";
@@ -22,6 +22,7 @@ struct DaemonConfig {
   double fps = 30.0;
   Pace pace = Pace::kRealtime;
   bool loop = true;
+  bool preload = false;
   vision::Roi roi{{483, 339, 400, 340}, {476, 344, 400, 340}};
   double depth_tolerance_mm = 20.0;
   vision::TrackerConfig tracker;

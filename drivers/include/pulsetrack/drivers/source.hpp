@@ -49,8 +49,19 @@ class CameraSource {
 std::unique_ptr<CameraSource> makeSimSource(const sim::SceneSpec& scene,
                                             const vision::StereoRig& rig, double fps, bool loop);
 
-// A recording: at its own pace (the recorded timestamps) or as fast as possible.
+struct ReplayOptions {
+  enum class Pace {
+    kRecorded,  // the recorded timestamps
+    kFast,      // as fast as possible
+    kRate,      // at `fps`, restamped with the time each pair is handed over, as a live camera
+  } pace = Pace::kRecorded;
+  double fps = 30.0;
+  bool loop = false;
+  bool preload = false;  // decode every frame into memory first (no disk or zstd per frame)
+};
+
+// A recording, replayed.
 vision::Result<std::unique_ptr<CameraSource>> makeReplaySource(
-    const std::filesystem::path& recording, bool realtime, bool loop);
+    const std::filesystem::path& recording, const ReplayOptions& options);
 
 }  // namespace pulsetrack::drivers

@@ -1,0 +1,141 @@
+// End-to-end latency of pulsetrackd: a frame pair handed over by the source -> the features
+// sample received by a subscriber process over DDS (loopback). The daemon replays a recording
+// from memory at 30, 60 and 120 Hz, restamping each pair on hand-over as a live camera would
+// (the stamp is CLOCK_MONOTONIC, shared by both processes); this process subscribes and takes
+// now - stamp per sample. Prints p50, p99, p99.9, max and the frames lost (gaps in the frame
+// numbers received), with the daemon's own drop and deadline counts from its health.
+//   daemon_latency [--seconds S] [--rates 30,60,120] [--features N]
+// The issue's run is 5 minutes per rate: --seconds 300.
+
+#include <spawn.h>
+#include <sys/wait.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "pulsetrack/dds/dds.hpp"
+#include "pulsetrack/rt/heartbeat.hpp"
+
+extern char** environ;
+
+namespace {
+
+constexpr const char* kLoopback =
+    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/>"
+    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>"
+    "auto</ParticipantIndex><Peers><Peer Address=\"127.0.0.1\"/></Peers></Discovery></Domain>"
+    "</CycloneDDS>";
+
+pid_t spawn(const std::vector<std::string>& args) {
+  std::vector<char*> argv;
+  argv.reserve(args.size() + 1);
+  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+  argv.push_back(nullptr);
+  pid_t pid = 0;
+  if (posix_spawn(&pid, argv[0], nullptr, nullptr, argv.data(), environ) != 0) return -1;
+  return pid;
+}
+
+int waitExit(pid_t pid) {
+  int status = 0;
+  waitpid(pid, &status, 0);
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  double seconds = 20;
+  std::vector<double> rates = {30, 60, 120};
+  int features = 100;
+  for (int i = 1; i + 1 < argc; i += 2) {
+    const std::string k = argv[i], v = argv[i + 1];
+    if (k == "--seconds") seconds = std::atof(v.c_str());
+    if (k == "--features") features = std::atoi(v.c_str());
+    if (k == "--rates") {
+      rates.clear();
+      std::stringstream ss(v);
+      for (std::string r; std::getline(ss, r, ',');) rates.push_back(std::atof(r.c_str()));
+    }
+  }
+  setenv("CYCLONEDDS_URI", kLoopback, 1);
+  const auto dir =
+      std::filesystem::temp_directory_path() / ("pulsetrack-latency-" + std::to_string(getpid()));
+  std::filesystem::create_directories(dir);
+  const std::string rec = (dir / "rec").string();
+  std::fprintf(stderr, "daemon_latency: recording 60 frames of the cortex scene...\n");
+  if (waitExit(spawn({PULSETRACK_CLI, "simulate", "--scene",
+                      std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-60s.toml",
+                      "--out", rec, "--frames", "60", "--supersample", "1", "--quiet"})) != 0) {
+    std::fprintf(stderr, "daemon_latency: pulsetrack simulate failed\n");
+    return 1;
+  }
+  std::printf("frame handed over -> features sample received by another process (DDS, loopback)\n");
+  std::printf("%6s %8s %9s %9s %9s %9s %7s %8s %9s\n", "rate", "samples", "p50 us", "p99 us",
+              "p99.9 us", "max us", "lost", "drops", "deadline");
+  int domain = 90;
+  for (const double rate : rates) {
+    const auto cfg = dir / "pulsetrackd.toml";
+    std::ofstream(cfg) << "rig_id = \"bench\"\n[dds]\ndomain_id = " << domain
+                       << "\n[source]\nkind = \"replay\"\nrecording = \"" << rec
+                       << "\"\npace = \"rate\"\nfps = " << rate
+                       << "\nloop = true\npreload = true\n[tracker]\nmax_features = " << features
+                       << "\n[health]\nperiod_ms = 500\n";
+    const pid_t d = spawn({PULSETRACKD, "-c", cfg.string(), "--run-for",
+                           std::to_string(static_cast<int>(seconds + 4))});
+    auto p = pulsetrack::dds::Participant::create(static_cast<uint32_t>(domain));
+    auto reader = pulsetrack::dds::Reader::create(*p, pulsetrack::dds::kFeaturesTopic,
+                                                  &pulsetrack_msgs_msg_dds__Features__desc,
+                                                  pulsetrack::dds::Profile::kSensorData);
+    auto health = pulsetrack::dds::Reader::create(*p, pulsetrack::dds::kHealthTopic,
+                                                  &pulsetrack_msgs_msg_dds__Health__desc,
+                                                  pulsetrack::dds::Profile::kTransientLocal);
+    if (!p || !reader || !health) return 1;
+    pulsetrack_msgs_msg_dds__Features_ f{};
+    pulsetrack_msgs_msg_dds__Health_ h{};
+    std::vector<double> us;
+    uint64_t first = 0, last = 0, received = 0;
+    // Skip the first 2 s: detection, DDS discovery, page faults.
+    const int64_t t_start = pulsetrack::rt::monotonicNs() + 2'000'000'000;
+    const int64_t t_end = t_start + static_cast<int64_t>(seconds * 1e9);
+    while (pulsetrack::rt::monotonicNs() < t_end) {
+      if (!reader->takeOne(&f, std::chrono::milliseconds(100))) continue;
+      const int64_t now = pulsetrack::rt::monotonicNs();
+      if (now < t_start) continue;
+      const int64_t stamp = int64_t{f.header.stamp.sec} * 1'000'000'000 + f.header.stamp.nanosec;
+      us.push_back(static_cast<double>(now - stamp) * 1e-3);
+      if (received == 0) first = f.frame;
+      last = f.frame;
+      ++received;
+    }
+    while (health->takeOne(&h, std::chrono::milliseconds(0))) {
+    }
+    std::sort(us.begin(), us.end());
+    const auto pct = [&](double q) {
+      return us.empty() ? 0.0
+                        : us[std::min(us.size() - 1,
+                                      static_cast<size_t>(q * static_cast<double>(us.size())))];
+    };
+    const uint64_t expected = received > 0 ? last - first + 1 : 0;
+    std::printf("%4.0f Hz %8zu %9.0f %9.0f %9.0f %9.0f %7llu %8llu %9llu\n", rate, us.size(),
+                pct(0.5), pct(0.99), pct(0.999), us.empty() ? 0.0 : us.back(),
+                static_cast<unsigned long long>(expected - received),
+                static_cast<unsigned long long>(h.drops),
+                static_cast<unsigned long long>(h.deadline_misses));
+    std::fflush(stdout);
+    waitExit(d);
+    dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
+    dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+    ++domain;
+  }
+  std::filesystem::remove_all(dir);
+  return 0;
+}
