@@ -120,6 +120,7 @@ void Pipeline::stop() {
 }
 
 void Pipeline::captureLoop() {
+  bool faulted = false;
   while (running_.load(std::memory_order_relaxed)) {
     Frame& f = frames_.back();
     const drivers::Next n = source_->next(f.pair, std::chrono::milliseconds(100));
@@ -129,10 +130,14 @@ void Pipeline::captureLoop() {
       f.captured_ns = now;
       capture_lat_.record(static_cast<uint64_t>(std::max<int64_t>(0, now - f.pair.t_left_ns)));
       frames_.publish();
+      last_frame_ns_.store(now, std::memory_order_relaxed);
+      faulted = false;
     } else if (n == drivers::Next::kFault || n == drivers::Next::kEnd) {
-      if (!has_error_.load()) {
-        last_error_ = n == drivers::Next::kEnd ? "the source ended" : source_->lastFault();
-        has_error_.store(true);
+      if (!faulted) {  // said once per fault, on its edge (the health thread reports it)
+        source_errors_.back() =
+            n == drivers::Next::kEnd ? "the source ended" : source_->lastFault();
+        source_errors_.publish();
+        faulted = true;
       }
       source_faults_.fetch_add(1);
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
@@ -345,13 +350,19 @@ State Pipeline::health(const Notifier& notifier) {
   const rt::Heartbeat* stages[] = {&capture_beat_, &track_beat_, &publish_beat_};
   bool stalled = false;
   for (const rt::Heartbeat* h : stages) stalled = stalled || !h->alive(now, max_age);
-  const bool error = has_error_.load();
+  // The source is quiet when no pair came for 1 s or three trigger periods: degraded (the
+  // stages still run and the watchdog is still fed; the device may come back).
+  if (const std::string* e = source_errors_.take()) last_source_error_ = *e;
+  const int64_t last_frame = last_frame_ns_.load(std::memory_order_relaxed);
+  const int64_t quiet_after =
+      std::max<int64_t>(1'000'000'000, static_cast<int64_t>(3e9 / config_.fps));
+  const bool quiet = last_frame != 0 && now - last_frame > quiet_after;
   State state = State::kOk;
   if (!trackedOnce())
     state = stalled && now - started_ns_ > 10 * max_age ? State::kFault : State::kStarting;
   else if (stalled)
     state = State::kFault;
-  else if (error || ok_features_.load() < 3)
+  else if (quiet || ok_features_.load() < 3)
     state = State::kDegraded;
   if (trackedOnce() && !said_ready_) {
     notifier.ready();
@@ -395,11 +406,15 @@ State Pipeline::health(const Notifier& notifier) {
   h.unpaired = 0;
   std::string source_name = source_->name();
   h.source = source_name.data();
-  std::string source_state = has_error_.load() ? "fault" : paused_.load() ? "paused" : "running";
+  std::string source_state = quiet ? "stalled" : paused_.load() ? "paused" : "running";
   h.source_state = source_state.data();
   h.trigger_state = const_cast<char*>("software");
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
-  std::string err = has_error_.load() ? last_error_ : last_refusal_;
+  std::string err =
+      quiet ? fmt::format("no frame from the source for {} ms{}", (now - last_frame) / 1'000'000,
+                          last_source_error_.empty() ? "" : ": " + last_source_error_)
+      : !last_refusal_.empty() ? last_refusal_
+                               : last_source_error_;
   h.last_error = err.data();
   (void)health_writer_.write(&h);
   return state;

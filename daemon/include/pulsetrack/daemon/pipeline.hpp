@@ -103,8 +103,9 @@ class Pipeline {
   std::string last_refusal_;                    // health thread's copy
   std::thread command_;
   std::atomic<int> ok_features_{0}, total_features_{0};
-  std::string last_error_;  // written by the capture thread before its beat stops
-  std::atomic<bool> has_error_{false};
+  std::atomic<int64_t> last_frame_ns_{0};
+  rt::LatestSlot<std::string> source_errors_;  // capture -> health, on a fault's edge
+  std::string last_source_error_;              // health thread's copy
   std::thread capture_, track_, publish_;
   int64_t started_ns_ = 0;
   bool said_ready_ = false;
