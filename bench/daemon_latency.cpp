@@ -28,12 +28,6 @@ extern char** environ;
 
 namespace {
 
-constexpr const char* kLoopback =
-    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/>"
-    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>"
-    "auto</ParticipantIndex><Peers><Peer Address=\"127.0.0.1\"/></Peers></Discovery></Domain>"
-    "</CycloneDDS>";
-
 pid_t spawn(const std::vector<std::string>& args) {
   std::vector<char*> argv;
   argv.reserve(args.size() + 1);
@@ -66,7 +60,7 @@ int main(int argc, char** argv) {
       for (std::string r; std::getline(ss, r, ',');) rates.push_back(std::atof(r.c_str()));
     }
   }
-  setenv("CYCLONEDDS_URI", kLoopback, 1);
+  setenv("CYCLONEDDS_URI", pulsetrack::dds::kLoopbackUri, 1);
   const auto dir =
       std::filesystem::temp_directory_path() / ("pulsetrack-latency-" + std::to_string(getpid()));
   std::filesystem::create_directories(dir);

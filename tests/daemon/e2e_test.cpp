@@ -27,12 +27,6 @@ extern char** environ;
 namespace pulsetrack {
 namespace {
 
-constexpr const char* kLoopback =
-    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/>"
-    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>"
-    "auto</ParticipantIndex><Peers><Peer Address=\"127.0.0.1\"/></Peers></Discovery></Domain>"
-    "</CycloneDDS>";
-
 const std::string kScene = std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-60s.toml";
 
 struct Daemon {
@@ -53,7 +47,7 @@ struct Daemon {
     a.sun_family = AF_UNIX;
     sock.copy(a.sun_path, sizeof a.sun_path - 1);
     EXPECT_EQ(bind(notify_fd, reinterpret_cast<sockaddr*>(&a), sizeof a), 0);
-    setenv("CYCLONEDDS_URI", kLoopback, 1);
+    setenv("CYCLONEDDS_URI", pulsetrack::dds::kLoopbackUri, 1);
     setenv("NOTIFY_SOCKET", sock.c_str(), 1);
     setenv("WATCHDOG_USEC", "1000000", 1);
     unsetenv("WATCHDOG_PID");

@@ -57,10 +57,7 @@ class StallingSource final : public drivers::CameraSource {
 };
 
 TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
-  setenv("CYCLONEDDS_URI",
-         "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/>"
-         "</Interfaces><AllowMulticast>false</AllowMulticast></General></Domain></CycloneDDS>",
-         1);
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
   auto spec = sim::loadScene(std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-60s.toml");
   ASSERT_TRUE(spec);
   auto rig = vision::loadRig(spec->rig_path);

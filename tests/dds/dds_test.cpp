@@ -18,12 +18,6 @@ extern char** environ;
 namespace pulsetrack::dds {
 namespace {
 
-constexpr const char* kLoopback =
-    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/>"
-    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto"
-    "</ParticipantIndex><Peers><Peer "
-    "Address=\"127.0.0.1\"/></Peers></Discovery></Domain></CycloneDDS>";
-
 TEST(Dds, TypesAreNamedTheRos2Way) {
   EXPECT_STREQ(pulsetrack_msgs_msg_dds__Features__desc.m_typename,
                "pulsetrack_msgs::msg::dds_::Features_");
@@ -88,7 +82,7 @@ TEST(Dds, BadDomainIsAClearError) {
 }
 
 TEST(Dds, AnotherProcessPublishesFeaturesAndALateJoinerGetsHealth) {
-  setenv("CYCLONEDDS_URI", kLoopback, 1);
+  setenv("CYCLONEDDS_URI", pulsetrack::dds::kLoopbackUri, 1);
   const uint32_t domain = 71;
   pid_t pid = 0;
   std::string d = std::to_string(domain);

@@ -22,6 +22,14 @@ inline constexpr const char* kDeformationTopic = "rt/pulsetrack/deformation";
 inline constexpr const char* kHealthTopic = "rt/pulsetrack/health";
 inline constexpr const char* kCommandTopic = "rt/pulsetrack/command";
 
+// A CYCLONEDDS_URI that keeps DDS on loopback (no multicast, the local peer named): tests,
+// benchmarks and the demo, so that they disturb no one on the network.
+inline constexpr const char* kLoopbackUri =
+    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/>"
+    "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>"
+    "auto</ParticipantIndex><Peers><Peer Address=\"127.0.0.1\"/></Peers></Discovery></Domain>"
+    "</CycloneDDS>";
+
 enum class Profile { kSensorData, kTransientLocal, kCommand };
 
 // An owned DDS entity (deleted with its children).
