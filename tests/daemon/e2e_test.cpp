@@ -3,6 +3,7 @@
 // truth, and plays systemd on a notify socket it binds: READY=1, WATCHDOG=1 while healthy,
 // the pings stopping and health going to fault when the track stage stalls.
 
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <spawn.h>
 #include <sys/socket.h>
@@ -207,6 +208,60 @@ TEST(Daemon, AStalledTrackStageStopsTheWatchdogAndHealthSaysFault) {
   EXPECT_TRUE(fault);
   EXPECT_TRUE(ok_after_fault);
   EXPECT_GT(longest, 2.0);
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+}
+
+// A subscriber process that dies (SIGKILL, no goodbye) does not disturb the daemon: health
+// stays ok and another subscriber keeps receiving.
+TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {
+  test::TempDir dir;
+  const uint32_t domain = 77;
+  Daemon d(dir, domain, {"--run-for", "12"});
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+  pid_t listener = 0;
+  std::string dom = std::to_string(domain);
+  std::vector<std::string> args = {PULSETRACK_CLI, "listen", "--domain", dom, "--seconds", "60"};
+  std::vector<char*> argv;
+  argv.reserve(args.size() + 1);
+  for (auto& a : args) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  posix_spawn_file_actions_t quiet;
+  posix_spawn_file_actions_init(&quiet);
+  posix_spawn_file_actions_addopen(&quiet, 1, "/dev/null", O_WRONLY, 0);
+  ASSERT_EQ(posix_spawn(&listener, PULSETRACK_CLI, &quiet, nullptr, argv.data(), environ), 0);
+  posix_spawn_file_actions_destroy(&quiet);
+  auto p = dds::Participant::create(domain);
+  ASSERT_TRUE(p);
+  auto features = dds::Reader::create(
+      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
+  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                                    dds::Profile::kTransientLocal);
+  ASSERT_TRUE(features && health);
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  pulsetrack_msgs_msg_dds__Features_ f{};
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  int before = 0, after = 0, not_ok_after = 0;
+  bool killed = false;
+  while (secs() < 10.0) {
+    d.drain(secs());
+    if (!killed && secs() > 4.0) {
+      kill(listener, SIGKILL);
+      waitpid(listener, nullptr, 0);
+      killed = true;
+    }
+    if (features->takeOne(&f, std::chrono::milliseconds(50))) (killed ? after : before)++;
+    while (health->takeOne(&h, std::chrono::milliseconds(0))) {
+      if (killed && h.state != 1) ++not_ok_after;
+    }
+  }
+  EXPECT_EQ(d.wait(secs), 0);
+  EXPECT_GT(before, 5);
+  EXPECT_GT(after, 10);  // still flowing after the crash
+  EXPECT_EQ(not_ok_after, 0);
+  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
   dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 
