@@ -211,6 +211,26 @@ TEST(Daemon, AStalledTrackStageStopsTheWatchdogAndHealthSaysFault) {
   dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 
+// The technician's view: a bad config stops the daemon before anything starts, with file:line
+// (the unit's ExecStartPre runs exactly this); a good one is reported ok.
+TEST(Daemon, CheckConfigNamesFileLineOrSaysOk) {
+  test::TempDir dir;
+  const auto bad = dir.path() / "pulsetrackd.toml";
+  std::ofstream(bad) << "rig_id = \"r\"\n[tracker]\nmax_featurs = 50\n";
+  auto r = test::run(std::string(PULSETRACKD) + " --check-config -c " + bad.string());
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_NE(r.output.find("pulsetrackd.toml:3: unknown key 'tracker.max_featurs'"),
+            std::string::npos)
+      << r.output;
+  r = test::run(std::string(PULSETRACKD) + " --check-config -c " + PULSETRACK_SOURCE_DIR +
+                "/config/pulsetrackd.toml");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("ok (source sim cortex-60s"), std::string::npos) << r.output;
+  r = test::run(std::string(PULSETRACKD) + " -c /nonexistent.toml");
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("/nonexistent.toml: cannot open"), std::string::npos) << r.output;
+}
+
 // A subscriber process that dies (SIGKILL, no goodbye) does not disturb the daemon: health
 // stays ok and another subscriber keeps receiving.
 TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {
