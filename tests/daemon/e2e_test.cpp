@@ -93,7 +93,7 @@ struct Daemon {
 TEST(Daemon, PublishesTrackedFeaturesThatMatchTheGroundTruthAndTalksToSystemd) {
   test::TempDir dir;
   const uint32_t domain = 73;
-  Daemon d(dir, domain, {"--run-for", "10"});
+  Daemon d(dir, domain, {"--run-for", "60"});
   auto p = dds::Participant::create(domain);
   ASSERT_TRUE(p) << p.error().message;
   auto features = dds::Reader::create(
@@ -121,7 +121,8 @@ TEST(Daemon, PublishesTrackedFeaturesThatMatchTheGroundTruthAndTalksToSystemd) {
   int samples = 0, scored = 0, within = 0, deformations = 0;
   double worst = 0;
   std::map<int, int> health_states;
-  while (secs() < 9.0) {
+  // 30 samples and a few health samples, or 40 s (a sanitizer build is slow); then SIGTERM.
+  while (secs() < 40.0 && (samples < 30 || health_states[1] < 4)) {
     d.drain(secs());
     if (features->takeOne(&f, std::chrono::milliseconds(50))) {
       ++samples;
@@ -147,6 +148,7 @@ TEST(Daemon, PublishesTrackedFeaturesThatMatchTheGroundTruthAndTalksToSystemd) {
     }
     while (health->takeOne(&h, std::chrono::milliseconds(0))) ++health_states[h.state];
   }
+  kill(d.pid, SIGTERM);
   EXPECT_EQ(d.wait(secs), 0);
   std::cout << "e2e: " << samples << " feature samples, " << deformations << " deformation, "
             << scored << " ok features scored, " << within << " within 0.5 mm of the truth "
@@ -237,7 +239,7 @@ TEST(Daemon, CheckConfigNamesFileLineOrSaysOk) {
 TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {
   test::TempDir dir;
   const uint32_t domain = 77;
-  Daemon d(dir, domain, {"--run-for", "12"});
+  Daemon d(dir, domain, {"--run-for", "60"});
   setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
   pid_t listener = 0;
   std::string dom = std::to_string(domain);
@@ -266,9 +268,13 @@ TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {
   pulsetrack_msgs_msg_dds__Health_ h{};
   int before = 0, after = 0, not_ok_after = 0;
   bool killed = false;
-  while (secs() < 10.0) {
+  // Warm up: the first features (slow in a sanitizer build); then 3 s, the kill, 5 s.
+  for (int k = 0; k < 300 && !features->takeOne(&f, std::chrono::milliseconds(100)); ++k)
     d.drain(secs());
-    if (!killed && secs() > 4.0) {
+  const double kill_at = secs() + 3.0, end_at = kill_at + 5.0;
+  while (secs() < end_at) {
+    d.drain(secs());
+    if (!killed && secs() > kill_at) {
       kill(listener, SIGKILL);
       waitpid(listener, nullptr, 0);
       killed = true;
@@ -278,9 +284,10 @@ TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {
       if (killed && h.state != 1) ++not_ok_after;
     }
   }
+  kill(d.pid, SIGTERM);
   EXPECT_EQ(d.wait(secs), 0);
-  EXPECT_GT(before, 5);
-  EXPECT_GT(after, 10);  // still flowing after the crash
+  EXPECT_GT(before, 3);
+  EXPECT_GT(after, 5);  // still flowing after the crash
   EXPECT_EQ(not_ok_after, 0);
   dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
   dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
