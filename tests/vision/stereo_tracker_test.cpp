@@ -154,8 +154,16 @@ TEST(StereoTracker, RedetectsWhenTooFewRemain) {
   tracker.track(l, r);
   EXPECT_FALSE(tracker.needsRedetection());
   const cv::Mat dark(r.size(), CV_8UC1, cv::Scalar(0));
+  std::vector<Feature> before(tracker.features().begin(), tracker.features().end());
   tracker.track(l, dark);
   EXPECT_EQ(tracker.okCount(), 0);
+  // A rejected feature reports where it was last seen, in both cameras, with its last point.
+  for (size_t i = 0; i < before.size(); ++i) {
+    const Feature& now = tracker.features()[i];
+    EXPECT_EQ(now.left, before[i].left) << i;
+    EXPECT_EQ(now.right, before[i].right) << i;
+    EXPECT_EQ(now.point, before[i].point) << i;
+  }
   EXPECT_TRUE(tracker.needsRedetection());
   auto again = tracker.redetect(l, r);
   ASSERT_TRUE(again) << again.error().message;

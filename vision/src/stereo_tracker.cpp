@@ -415,8 +415,6 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
         !s.nmi[0].set(t0, left.step, kSide, kSide) || !s.nmi[1].set(t1, right.step, kSide, kSide)) {
       continue;
     }
-    s.video[0] = c.left;
-    s.video[1] = c.right;
     Feature f;
     f.id = next_id_ + static_cast<int>(features_.size());
     f.left = c.left;
@@ -491,9 +489,9 @@ bool StereoTracker::searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& l
   return true;
 }
 
-bool StereoTracker::trackCamera(int cam, const cv::Mat& img, State& s, double& ncc,
+bool StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
                                 double& nmi) noexcept {
-  const cv::Vec2d last = s.video[cam];
+  const cv::Vec2d last = at;
   cv::Vec2d pos = last;
   bool found = false;
   if (config_.refinement) {
@@ -523,7 +521,7 @@ bool StereoTracker::trackCamera(int cam, const cv::Mat& img, State& s, double& n
   // A glint over the feature (they move as the surface breathes) gates this frame.
   if (neighbourhoodMax(img, pos, config_.specular_margin_px) >= config_.specular_threshold)
     nmi = 0.0;
-  s.video[cam] = pos;
+  at = pos;
   return true;
 }
 
@@ -531,20 +529,18 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
   for (size_t i = 0; i < features_.size(); ++i) {
     Feature& f = features_[i];
     State& s = states_[i];
-    const cv::Vec2d prev_left = s.video[0], prev_right = s.video[1];
+    const cv::Vec2d prev_left = f.left, prev_right = f.right;
     double ncc_l = 0, ncc_r = 0, nmi_l = 0, nmi_r = 0;
-    const bool ok_l = trackCamera(0, left, s, ncc_l, nmi_l);
-    const bool ok_r = trackCamera(1, right, s, ncc_r, nmi_r);
+    const bool ok_l = trackCamera(0, left, f.left, s, ncc_l, nmi_l);
+    const bool ok_r = trackCamera(1, right, f.right, s, ncc_r, nmi_r);
     f.ncc = std::min(ncc_l, ncc_r);
     f.nmi = std::min(nmi_l, nmi_r);
     const auto keep_last = [&](FeatureStatus why) {
       // An occluded or lost feature stays where it was last seen, so it is found again there.
-      s.video[0] = prev_left;
-      s.video[1] = prev_right;
+      f.left = prev_left;
+      f.right = prev_right;
       f.status = why;
     };
-    f.left = s.video[0];
-    f.right = s.video[1];
     if (!ok_l || !ok_r) {
       keep_last(FeatureStatus::kLost);
       continue;

@@ -137,11 +137,12 @@ class StereoTracker {
     ShiftTemplate shift[2];
     NmiTemplate nmi[2];                // the frame-0 templates, for NMI
     double ncc_level[2] = {0.0, 0.0};  // running NCC while ok; 0 before the first frame
-    cv::Vec2d video[2];                // each camera's track of its own frame-0 template
   };
   bool searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s, cv::Vec2d& pos,
                     double& ncc) noexcept;
-  bool trackCamera(int cam, const cv::Mat& img, State& s, double& ncc, double& nmi) noexcept;
+  // Matches camera `cam`'s frame-0 template near `at` and moves `at` to the match.
+  bool trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
+                   double& nmi) noexcept;
   void surfaceGate() noexcept;
   // Candidate positions in ROI coordinates (sub-pixel for blobs).
   [[nodiscard]] std::vector<cv::Point2d> detectHarris(const cv::Mat& img) const;
