@@ -139,7 +139,6 @@ void Pipeline::captureLoop() {
         source_errors_.publish();
         faulted = true;
       }
-      source_faults_.fetch_add(1);
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
     }
     frames_seq_.fetch_add(1, std::memory_order_release);
@@ -348,8 +347,8 @@ State Pipeline::health(const Notifier& notifier) {
   const int64_t max_age =
       std::max<int64_t>(1'000'000'000, int64_t{config_.health_period_ms} * 2'000'000);
   const rt::Heartbeat* stages[] = {&capture_beat_, &track_beat_, &publish_beat_};
-  bool stalled = false;
-  for (const rt::Heartbeat* h : stages) stalled = stalled || !h->alive(now, max_age);
+  // The watchdog is pinged only when every stage is on time; that check is the stall verdict.
+  const bool stalled = !notifier.pingIfHealthy(stages, std::chrono::nanoseconds(max_age));
   // The source is quiet when no pair came for 1 s or three trigger periods: degraded (the
   // stages still run and the watchdog is still fed; the device may come back).
   if (const std::string* e = source_errors_.take()) last_source_error_ = *e;
@@ -368,7 +367,6 @@ State Pipeline::health(const Notifier& notifier) {
     notifier.ready();
     said_ready_ = true;
   }
-  if (!stalled) (void)notifier.pingIfHealthy(stages, std::chrono::nanoseconds(max_age));
   const double secs = static_cast<double>(now - started_ns_) * 1e-9;
   const double fps = secs > 0 ? static_cast<double>(tracked()) / secs : 0.0;
   const std::string line =

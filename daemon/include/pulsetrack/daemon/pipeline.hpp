@@ -89,7 +89,7 @@ class Pipeline {
   std::atomic<uint64_t> frames_seq_{0}, results_seq_{0};  // wake-ups (futex, no lock)
   rt::Heartbeat capture_beat_, track_beat_, publish_beat_;
   rt::LatencyHistogram capture_lat_, track_lat_, publish_lat_;
-  std::atomic<uint64_t> tracked_{0}, deadline_misses_{0}, source_faults_{0};
+  std::atomic<uint64_t> tracked_{0}, deadline_misses_{0};
   std::atomic<bool> running_{false};
   std::atomic<int64_t> stall_ms_{0};
   struct RoiRequest {

@@ -25,7 +25,6 @@ class Heartbeat {
     const int64_t last = last_ns_.load(std::memory_order_relaxed);
     return last != 0 && now_ns - last <= max_age_ns;
   }
-  [[nodiscard]] int64_t lastNs() const noexcept { return last_ns_.load(std::memory_order_relaxed); }
 
  private:
   std::atomic<int64_t> last_ns_{0};
