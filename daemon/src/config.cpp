@@ -73,6 +73,21 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     c.pace = pace == "fast" ? Pace::kFast : pace == "rate" ? Pace::kRate : Pace::kRealtime;
     c.preload = s.boolean("preload", c.preload);
     c.loop = s.boolean("loop", c.loop);
+    if (const toml::table* f = s.table("faults")) {
+      TableReader ft(*f, file, "source.faults", &error);
+      c.sim_faults.missing_trigger_every = ft.integer("missing_trigger_every", 0, 0, 1000000);
+      c.sim_faults.left_drop_every = ft.integer("left_drop_every", 0, 0, 1000000);
+      c.sim_faults.right_miss_every = ft.integer("right_miss_every", 0, 0, 1000000);
+      ft.finish();
+      const bool any = c.sim_faults.missing_trigger_every + c.sim_faults.left_drop_every +
+                           c.sim_faults.right_miss_every >
+                       0;
+      if (any && c.source != SourceKind::kSim && error.empty())
+        error = fmt::format(
+            "{}: source.faults: only the simulated rig (kind = \"sim\") can show "
+            "injected faults",
+            file);
+    }
     s.finish();
     if (c.source == SourceKind::kReplay && c.recording.empty() && error.empty())
       error = fmt::format("{}: source.recording is required with kind = \"replay\"", file);

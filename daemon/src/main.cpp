@@ -56,7 +56,7 @@ int run(int argc, char** argv) {
       return 1;
     }
     scene->supersample = 1;  // live rendering
-    source = drivers::makeSimSource(*scene, *rig, config->fps, config->loop);
+    source = drivers::makeSimSource(*scene, *rig, config->fps, config->loop, config->sim_faults);
   } else {
     drivers::ReplayOptions o;
     o.pace = config->pace == daemon::Pace::kFast   ? drivers::ReplayOptions::Pace::kFast

@@ -356,12 +356,24 @@ State Pipeline::health(const Notifier& notifier) {
   const int64_t quiet_after =
       std::max<int64_t>(1'000'000'000, static_cast<int64_t>(3e9 / config_.fps));
   const bool quiet = last_frame != 0 && now - last_frame > quiet_after;
+  // Triggers that gave no pair (missing pulses, frames without a partner) over a window of
+  // 20 trigger periods (at least 1 s): more than a fifth of them is degraded, said on health.
+  const drivers::SourceCounters sc = source_->counters();
+  const uint64_t lost = sc.missing_triggers + sc.unpaired;
+  const auto window_ns = std::max<int64_t>(1'000'000'000, static_cast<int64_t>(20e9 / config_.fps));
+  if (now - loss_window_.t_ns >= window_ns) {
+    loss_window_.lost_in = lost - loss_window_.lost;
+    loss_window_.pairs_in = sc.frames - loss_window_.frames;
+    loss_window_ = {now, lost, sc.frames, loss_window_.lost_in, loss_window_.pairs_in};
+  }
+  const uint64_t lost_now = loss_window_.lost_in, pairs_now = loss_window_.pairs_in;
+  const bool losing = lost_now * 4 > pairs_now && lost_now > 0;
   State state = State::kOk;
   if (!trackedOnce())
     state = stalled && now - started_ns_ > 10 * max_age ? State::kFault : State::kStarting;
   else if (stalled)
     state = State::kFault;
-  else if (quiet || ok_features_.load() < 3)
+  else if (quiet || losing || ok_features_.load() < 3)
     state = State::kDegraded;
   if (trackedOnce() && !said_ready_) {
     notifier.ready();
@@ -399,18 +411,22 @@ State Pipeline::health(const Notifier& notifier) {
   h.frames = tracked();
   h.drops = frames_.drops() + results_.drops();
   h.deadline_misses = deadline_misses_.load();
-  const drivers::SourceCounters sc = source_->counters();
   h.missing_triggers = sc.missing_triggers;
-  h.unpaired = 0;
+  h.unpaired = sc.unpaired;
   std::string source_name = source_->name();
   h.source = source_name.data();
   std::string source_state = quiet ? "stalled" : paused_.load() ? "paused" : "running";
   h.source_state = source_state.data();
-  h.trigger_state = const_cast<char*>("software");
+  std::string trigger_state = source_->triggerState();
+  h.trigger_state = trigger_state.data();
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
   std::string err =
-      quiet ? fmt::format("no frame from the source for {} ms{}", (now - last_frame) / 1'000'000,
+      quiet    ? fmt::format("no frame from the source for {} ms{}", (now - last_frame) / 1'000'000,
                           last_source_error_.empty() ? "" : ": " + last_source_error_)
+      : losing ? fmt::format(
+                     "{} of the last {} triggers gave no frame pair (missing triggers {}, "
+                     "unpaired frames {} in all)",
+                     lost_now, lost_now + pairs_now, sc.missing_triggers, sc.unpaired)
       : !last_refusal_.empty() ? last_refusal_
                                : last_source_error_;
   h.last_error = err.data();

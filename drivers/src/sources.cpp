@@ -1,6 +1,9 @@
 #include <fmt/format.h>
 #include <time.h>
 
+#include <array>
+
+#include "pulsetrack/drivers/pairing.hpp"
 #include "pulsetrack/drivers/source.hpp"
 #include "pulsetrack/rt/heartbeat.hpp"
 
@@ -18,47 +21,77 @@ void sleepUntil(int64_t t_ns) {
 
 class SimSource final : public CameraSource {
  public:
-  SimSource(const sim::SceneSpec& scene, const vision::StereoRig& rig, double fps, bool loop)
-      : sim_(scene, rig), period_ns_(static_cast<int64_t>(1e9 / fps)), loop_(loop) {}
+  SimSource(const sim::SceneSpec& scene, const vision::StereoRig& rig, double fps, bool loop,
+            const SimFaults& faults)
+      : sim_(scene, rig),
+        period_ns_(static_cast<int64_t>(1e9 / fps)),
+        fps_(fps),
+        loop_(loop),
+        faults_(faults),
+        pairer_({period_ns_, 0}) {}
   std::string name() const override { return "sim " + sim_.spec().name; }
   const vision::StereoRig& rig() const override { return sim_.rig(); }
   vision::Result<void> start() override {
     t0_ns_ = rt::monotonicNs();
     index_ = 0;
+    pairer_.reset();
     return {};
   }
   Next next(StereoFrame& frame, std::chrono::milliseconds timeout) override {
-    int64_t due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
-    const int64_t now = rt::monotonicNs();
-    if (due > now + std::chrono::nanoseconds(timeout).count()) return Next::kTimeout;
-    if (due < now - period_ns_) {
-      // Rendering took longer than a period: those triggers fired with no frame.
-      const auto late = static_cast<uint64_t>((now - due) / period_ns_);
-      counters_.missing_triggers += late;
-      index_ += late;
-      due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
+    const int64_t until = rt::monotonicNs() + std::chrono::nanoseconds(timeout).count();
+    const auto count = static_cast<uint64_t>(sim_.frameCount());
+    for (;;) {
+      int64_t due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
+      const int64_t now = rt::monotonicNs();
+      if (due > until) return Next::kTimeout;
+      if (due < now - period_ns_) {
+        // Rendering took longer than a period: those triggers' frames were never taken.
+        index_ += static_cast<uint64_t>((now - due) / period_ns_);
+        due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
+      }
+      if (!loop_ && index_ >= count) return Next::kEnd;
+      sleepUntil(due);
+      const uint64_t k = index_++;
+      if (every(faults_.missing_trigger_every, k)) continue;  // the pulse never fired
+      const int slot = static_cast<int>(k % count);           // the scene frame it shows
+      if (every(faults_.left_drop_every, k)) {
+        ++seq_[0];  // the driver dropped it: a gap in the left counter
+      } else {
+        pairer_.offer(0, {seq_[0]++, due, slot});
+      }
+      if (every(faults_.right_miss_every, k)) continue;
+      const PairEvents ev = pairer_.offer(1, {seq_[1]++, due, slot});
+      if (!ev.paired) continue;
+      sim_.render(ev.left.slot, frame.left, frame.right);
+      frame.trigger_seq = ev.trigger_seq;
+      frame.t_left_ns = ev.left.t_ns;
+      frame.t_right_ns = ev.right.t_ns;
+      ++frames_;
+      const PairerCounters& p = pairer_.counters();
+      shared_.store({frames_, p.missing_triggers, p.unpaired, p.dropped[0] + p.dropped[1]});
+      return Next::kFrame;
     }
-    const int count = sim_.frameCount();
-    if (!loop_ && index_ >= static_cast<uint64_t>(count)) return Next::kEnd;
-    sleepUntil(due);
-    sim_.render(static_cast<int>(index_ % static_cast<uint64_t>(count)), frame.left, frame.right);
-    frame.trigger_seq = index_;
-    frame.t_left_ns = frame.t_right_ns = due;
-    ++index_;
-    ++counters_.frames;
-    return Next::kFrame;
   }
   void stop() override {}
   std::string lastFault() const override { return {}; }
-  SourceCounters counters() const override { return counters_; }
+  SourceCounters counters() const override { return shared_.load(); }
+  std::string triggerState() const override { return fmt::format("software {:g} Hz", fps_); }
 
  private:
+  static bool every(int n, uint64_t k) {
+    return n > 0 && k % static_cast<uint64_t>(n) == static_cast<uint64_t>(n - 1);
+  }
   sim::StereoSimulator sim_;
   int64_t period_ns_;
+  double fps_;
   bool loop_;
+  SimFaults faults_;
+  FramePairer pairer_;
   int64_t t0_ns_ = 0;
   uint64_t index_ = 0;
-  SourceCounters counters_;
+  uint64_t frames_ = 0;
+  std::array<uint64_t, 2> seq_{};
+  SharedCounters shared_;
 };
 
 class ReplaySource final : public CameraSource {
@@ -118,11 +151,16 @@ class ReplaySource final : public CameraSource {
     ++index_;
     ++handed_;
     ++counters_.frames;
+    shared_.store(counters_);
     return Next::kFrame;
   }
   void stop() override {}
   std::string lastFault() const override { return fault_; }
-  SourceCounters counters() const override { return counters_; }
+  SourceCounters counters() const override { return shared_.load(); }
+  std::string triggerState() const override {
+    return o_.pace == ReplayOptions::Pace::kRate ? fmt::format("replay at {:g} Hz", o_.fps)
+                                                 : "recorded";
+  }
 
  private:
   record::Reader reader_;
@@ -134,13 +172,15 @@ class ReplaySource final : public CameraSource {
   uint64_t last_seq_ = 0;
   std::string fault_;
   SourceCounters counters_;
+  SharedCounters shared_;
 };
 
 }  // namespace
 
 std::unique_ptr<CameraSource> makeSimSource(const sim::SceneSpec& scene,
-                                            const vision::StereoRig& rig, double fps, bool loop) {
-  return std::make_unique<SimSource>(scene, rig, fps, loop);
+                                            const vision::StereoRig& rig, double fps, bool loop,
+                                            const SimFaults& faults) {
+  return std::make_unique<SimSource>(scene, rig, fps, loop, faults);
 }
 
 vision::Result<std::unique_ptr<CameraSource>> makeReplaySource(

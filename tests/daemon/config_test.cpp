@@ -24,6 +24,9 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_EQ(c->track.fifo_priority, 70);
   EXPECT_EQ(c->capture.cpu, -1);
   EXPECT_DOUBLE_EQ(c->fps, 30.0);
+  EXPECT_EQ(c->sim_faults.missing_trigger_every + c->sim_faults.left_drop_every +
+                c->sim_faults.right_miss_every,
+            0);  // no injected faults as shipped
   // The file as shipped states the defaults: an empty file gives the same.
   auto d = parseDaemonConfig("", kShipped);
   ASSERT_TRUE(d);
@@ -56,6 +59,13 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError("[realtime]\ntrack = { prio = 1 }\n", "unknown key 'realtime.track.prio'");
   expectError("rig_id = \n", "pulsetrackd.toml:1:");  // a syntax error
   expectError("rig_id = \"\"\n", "rig_id must not be empty");
+  expectError("[source.faults]\nmissing_trigger_every = -1\n",
+              "pulsetrackd.toml:2: source.faults.missing_trigger_every");
+  expectError("[source.faults]\nright_drop_every = 3\n",
+              "unknown key 'source.faults.right_drop_every'");
+  expectError(
+      "[source]\nkind = \"replay\"\nrecording = \"r\"\n[source.faults]\nleft_drop_every = 3\n",
+      "only the simulated rig");
   auto missing = loadDaemonConfig("/nonexistent/pulsetrackd.toml");
   ASSERT_FALSE(missing);
   EXPECT_NE(missing.error().message.find("/nonexistent/pulsetrackd.toml: cannot open"),

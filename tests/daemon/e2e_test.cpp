@@ -35,11 +35,13 @@ struct Daemon {
   int notify_fd = -1;
   std::vector<std::pair<double, std::string>> notes;  // (seconds since start, datagram)
 
-  Daemon(const test::TempDir& dir, uint32_t domain, const std::vector<std::string>& extra) {
+  Daemon(const test::TempDir& dir, uint32_t domain, const std::vector<std::string>& extra,
+         const std::string& source_extra = "") {
     const auto cfg = dir.path() / "pulsetrackd.toml";
     std::ofstream(cfg) << "rig_id = \"rig-e2e\"\n[dds]\ndomain_id = " << domain
-                       << "\n[source]\nkind = \"sim\"\nscene = \"" << kScene
-                       << "\"\nfps = 10.0\n[realtime]\nlock_memory = false\n"
+                       << "\n[source]\nkind = \"sim\"\nscene = \"" << kScene << "\"\nfps = 10.0\n"
+                       << source_extra
+                       << "[realtime]\nlock_memory = false\n"
                           "capture = { priority = 0 }\ntrack = { priority = 0 }\n"
                           "publish = { priority = 0 }\n[health]\nperiod_ms = 200\n";
     const std::string sock = (dir.path() / "notify").string();
@@ -232,6 +234,64 @@ TEST(Daemon, CheckConfigNamesFileLineOrSaysOk) {
   r = test::run(std::string(PULSETRACKD) + " -c /nonexistent.toml");
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("/nonexistent.toml: cannot open"), std::string::npos) << r.output;
+}
+
+// Trigger pulses that never fire and frames one camera lost (the simulated rig's injected
+// faults): no pair is ever made of two triggers' frames (the features' frame numbers skip every
+// faulty trigger), the counts reach health, and so many losses make it degraded, with the reason.
+TEST(Daemon, MissingTriggersAndUnpairedFramesAreCountedNeverPairedWrongly) {
+  test::TempDir dir;
+  const uint32_t domain = 78;
+  Daemon d(dir, domain, {"--run-for", "60"},
+           "[source.faults]\nmissing_trigger_every = 5\nleft_drop_every = 7\n"
+           "right_miss_every = 11\n");
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+  auto p = dds::Participant::create(domain);
+  ASSERT_TRUE(p);
+  auto features = dds::Reader::create(
+      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
+  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                                    dds::Profile::kTransientLocal);
+  ASSERT_TRUE(features && health);
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  pulsetrack_msgs_msg_dds__Features_ f{};
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  int samples = 0, faulty = 0, degraded = 0;
+  uint64_t missing = 0, unpaired = 0;
+  std::string trigger_state, reason;
+  while (secs() < 40.0 && (samples < 20 || degraded < 2)) {
+    d.drain(secs());
+    if (features->takeOne(&f, std::chrono::milliseconds(50))) {
+      ++samples;
+      const uint64_t k = f.frame;
+      if (k % 5 == 4 || k % 7 == 6 || k % 11 == 10) ++faulty;
+    }
+    while (health->takeOne(&h, std::chrono::milliseconds(0))) {
+      missing = h.missing_triggers;
+      unpaired = h.unpaired;
+      trigger_state = h.trigger_state;
+      if (h.state == 2) {
+        ++degraded;
+        reason = h.last_error;
+      }
+    }
+  }
+  kill(d.pid, SIGTERM);
+  EXPECT_EQ(d.wait(secs), 0);
+  std::cout << samples << " feature samples, health: missing triggers " << missing << ", unpaired "
+            << unpaired << ", trigger '" << trigger_state << "', reason '" << reason << "'\n";
+  EXPECT_GE(samples, 20);
+  EXPECT_EQ(faulty, 0);
+  EXPECT_GT(missing, 3U);
+  EXPECT_GT(unpaired, 3U);
+  EXPECT_EQ(trigger_state, "software 10 Hz");
+  EXPECT_GE(degraded, 2);
+  EXPECT_NE(reason.find("gave no frame pair"), std::string::npos) << reason;
+  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 
 // A subscriber process that dies (SIGKILL, no goodbye) does not disturb the daemon: health

@@ -27,7 +27,7 @@ class StallingSource final : public drivers::CameraSource {
   const vision::StereoRig& rig() const override { return rig_; }
   vision::Result<void> start() override { return {}; }
   drivers::Next next(drivers::StereoFrame& f, std::chrono::milliseconds timeout) override {
-    if (n_ == stall_after_ && stall_end_ns_ == 0) {
+    if (n_ == static_cast<uint64_t>(stall_after_) && stall_end_ns_ == 0) {
       stall_end_ns_ = rt::monotonicNs() + std::chrono::nanoseconds(stall_).count();
       return drivers::Next::kFault;  // the device went away
     }
@@ -36,23 +36,24 @@ class StallingSource final : public drivers::CameraSource {
       return drivers::Next::kTimeout;
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(50));  // 20 Hz
-    const auto& p = frames_[static_cast<size_t>(n_) % frames_.size()];
+    const auto& p = frames_[n_.load() % frames_.size()];
     p.first.copyTo(f.left);
     p.second.copyTo(f.right);
-    f.trigger_seq = static_cast<uint64_t>(n_++);
+    f.trigger_seq = n_++;
     f.t_left_ns = f.t_right_ns = rt::monotonicNs();
     return drivers::Next::kFrame;
   }
   void stop() override {}
   std::string lastFault() const override { return "/dev/video0: ENODEV (unplugged)"; }
-  drivers::SourceCounters counters() const override { return {static_cast<uint64_t>(n_), 0}; }
+  drivers::SourceCounters counters() const override { return {n_.load(), 0, 0, 0}; }
+  std::string triggerState() const override { return "test"; }
 
  private:
   std::vector<std::pair<cv::Mat, cv::Mat>> frames_;
   vision::StereoRig rig_;
   int stall_after_;
   std::chrono::milliseconds stall_;
-  int n_ = 0;
+  std::atomic<uint64_t> n_{0};
   int64_t stall_end_ns_ = 0;
 };
 

@@ -65,9 +65,9 @@ int runListen(const ListenArgs& a) {
       last_health = now;
       fmt::print(
           "health  {} {:9} {:.1f} fps, {} frames, {} drops, {} deadline misses, "
-          "{} missing triggers; {}{}\n",
+          "{} missing triggers, {} unpaired; {}, trigger {}{}\n",
           h.rig_id, stateName(h.state), h.fps, h.frames, h.drops, h.deadline_misses,
-          h.missing_triggers, h.source,
+          h.missing_triggers, h.unpaired, h.source, h.trigger_state,
           h.last_error[0] != 0 ? fmt::format(" ({})", h.last_error) : "");
       for (uint32_t i = 0; i < h.stages._length; ++i) {
         const auto& s = h.stages._buffer[i];

@@ -4,6 +4,7 @@
 #include <filesystem>
 #include <string>
 
+#include "pulsetrack/drivers/source.hpp"
 #include "pulsetrack/rt/thread_policy.hpp"
 #include "pulsetrack/vision/error.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
@@ -23,6 +24,7 @@ struct DaemonConfig {
   Pace pace = Pace::kRealtime;
   bool loop = true;
   bool preload = false;
+  drivers::SimFaults sim_faults;  // [source.faults]
   vision::Roi roi{{483, 339, 400, 340}, {476, 344, 400, 340}};
   double depth_tolerance_mm = 20.0;
   vision::TrackerConfig tracker;

@@ -107,6 +107,11 @@ class Pipeline {
   rt::LatestSlot<std::string> source_errors_;  // capture -> health, on a fault's edge
   std::string last_source_error_;              // health thread's copy
   std::thread capture_, track_, publish_;
+  struct LossWindow {  // health thread: the source's counters at the window's start
+    int64_t t_ns = 0;
+    uint64_t lost = 0, frames = 0;
+    uint64_t lost_in = 0, pairs_in = 0;  // in the last complete window
+  } loss_window_;
   int64_t started_ns_ = 0;
   bool said_ready_ = false;
 };

@@ -3,6 +3,7 @@
 // no hardware: the simulator live on a software trigger, and replay of a recording. The V4L2
 // and libcamera drivers implement the same interface (hardware issue).
 
+#include <atomic>
 #include <chrono>
 #include <cstdint>
 #include <memory>
@@ -27,8 +28,28 @@ struct StereoFrame {
 enum class Next { kFrame, kTimeout, kEnd, kFault };
 
 struct SourceCounters {
-  uint64_t frames = 0;
-  uint64_t missing_triggers = 0;  // sequence gaps (sim: triggers that fired while rendering)
+  uint64_t frames = 0;            // pairs handed over
+  uint64_t missing_triggers = 0;  // trigger periods with a frame from neither camera
+  uint64_t unpaired = 0;          // frames whose partner from the other camera never came
+  uint64_t dropped = 0;           // gaps in a camera's own frame counter (its driver dropped)
+};
+
+// Counters a source updates on its capture thread and health reads on another.
+class SharedCounters {
+ public:
+  void store(const SourceCounters& c) {
+    frames_.store(c.frames, std::memory_order_relaxed);
+    missing_.store(c.missing_triggers, std::memory_order_relaxed);
+    unpaired_.store(c.unpaired, std::memory_order_relaxed);
+    dropped_.store(c.dropped, std::memory_order_relaxed);
+  }
+  [[nodiscard]] SourceCounters load() const {
+    return {frames_.load(std::memory_order_relaxed), missing_.load(std::memory_order_relaxed),
+            unpaired_.load(std::memory_order_relaxed), dropped_.load(std::memory_order_relaxed)};
+  }
+
+ private:
+  std::atomic<uint64_t> frames_{0}, missing_{0}, unpaired_{0}, dropped_{0};
 };
 
 class CameraSource {
@@ -41,13 +62,26 @@ class CameraSource {
   virtual Next next(StereoFrame& frame, std::chrono::milliseconds timeout) = 0;
   virtual void stop() = 0;
   [[nodiscard]] virtual std::string lastFault() const = 0;
+  // Safe to call from any thread.
   [[nodiscard]] virtual SourceCounters counters() const = 0;
+  // One line for health: "software 30 Hz", "recorded", "hardware ..." with its state.
+  [[nodiscard]] virtual std::string triggerState() const = 0;
 };
 
-// The simulator live: a software trigger at `fps` (absolute deadlines on CLOCK_MONOTONIC);
-// a trigger that passes while the previous pair is still rendering is counted as missing.
+// Faults the simulated rig can be told to show, so that the daemon's counting and health can be
+// watched (a demo for the technician, and the tests). 0 disables each.
+struct SimFaults {
+  int missing_trigger_every = 0;  // every Nth pulse never fires (neither camera exposes)
+  int left_drop_every = 0;        // the left driver drops every Nth frame (a gap in its counter)
+  int right_miss_every = 0;       // the right camera misses every Nth pulse (no gap, no frame)
+};
+
+// The simulator live: a software trigger at `fps` (absolute deadlines on CLOCK_MONOTONIC).
+// Each camera's frames go through the FramePairer as a driver's would; a trigger that passes
+// while the previous pair is still rendering gives no frame (counted as missing).
 std::unique_ptr<CameraSource> makeSimSource(const sim::SceneSpec& scene,
-                                            const vision::StereoRig& rig, double fps, bool loop);
+                                            const vision::StereoRig& rig, double fps, bool loop,
+                                            const SimFaults& faults = {});
 
 struct ReplayOptions {
   enum class Pace {
