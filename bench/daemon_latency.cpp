@@ -10,6 +10,7 @@
 #include <spawn.h>
 #include <sys/wait.h>
 
+#include <CLI/CLI.hpp>
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -50,16 +51,17 @@ int main(int argc, char** argv) {
   double seconds = 20;
   std::vector<double> rates = {30, 60, 120};
   int features = 100;
-  for (int i = 1; i + 1 < argc; i += 2) {
-    const std::string k = argv[i], v = argv[i + 1];
-    if (k == "--seconds") seconds = std::atof(v.c_str());
-    if (k == "--features") features = std::atoi(v.c_str());
-    if (k == "--rates") {
-      rates.clear();
-      std::stringstream ss(v);
-      for (std::string r; std::getline(ss, r, ',');) rates.push_back(std::atof(r.c_str()));
-    }
-  }
+  CLI::App app{
+      "End-to-end latency of pulsetrackd: frame handed over -> features sample received by "
+      "another process over DDS (loopback), replaying a recording from memory at each rate.",
+      "daemon_latency"};
+  app.add_option("--seconds", seconds, "Seconds per rate (the issue's run: 300)")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--rates", rates, "Trigger rates in Hz, comma separated")
+      ->delimiter(',')
+      ->check(CLI::Range(1.0, 1000.0));
+  app.add_option("--features", features, "Features tracked")->check(CLI::Range(1, 1000));
+  CLI11_PARSE(app, argc, argv);
   setenv("CYCLONEDDS_URI", pulsetrack::dds::kLoopbackUri, 1);
   const auto dir =
       std::filesystem::temp_directory_path() / ("pulsetrack-latency-" + std::to_string(getpid()));
