@@ -44,7 +44,7 @@ const std::array<cv::Vec3d, 6>& nominalFeatures() {
 }
 
 PlateScene::PlateScene(const PlateSpec& spec, double fps, unsigned seed) : spec_(spec) {
-  std::mt19937 rng(seed);
+  std::mt19937 rng(static_cast<unsigned>(spec.setup_seed));
   std::uniform_real_distribution<double> unit(-1.0, 1.0);
   // The tracker stands about 2 m away, looking at the field from the side.
   o_t_c_ = {rodrigues({0.4 + 0.1 * unit(rng), -0.9 + 0.1 * unit(rng), 0.2 + 0.1 * unit(rng)}),

@@ -140,6 +140,7 @@ void readPlate(TableReader& r, PlateSpec& p) {
   p.max_angular_speed_deg_s =
       r.number("max_angular_speed_deg_s", p.max_angular_speed_deg_s, 0.0, 180.0);
   p.tracker_noise_mm = r.number("tracker_noise_mm", p.tracker_noise_mm, 0.0, 5.0);
+  p.setup_seed = r.integer("setup_seed", p.setup_seed, 0, 1 << 30);
   r.finish();
 }
 

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <fstream>
 #include <opencv2/core/eigen.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/sim/scene.hpp"
@@ -135,6 +136,35 @@ vision::Result<void> writeSimulation(StereoSimulator& sim, const std::filesystem
       divots += fmt::format("{},{:.6f},{:.6f},{:.6f}\n", d + 1, p[0], p[1], p[2]);
     }
     if (auto ok = writeText(out / "tracker/divots.csv", divots); !ok) return ok;
+    // The experimenter's log: which frames are which acquisition (set 0: the registration set)
+    // and the box drawn around the six features on each acquisition's first frame.
+    std::string protocol =
+        "set,acquisition,first_frame,last_frame,roi_left_x,roi_left_y,roi_left_w,roi_left_h,"
+        "roi_right_x,roi_right_y,roi_right_w,roi_right_h\n";
+    for (int i = 0; i < n;) {
+      const PlateSample& s = plate->samples()[static_cast<size_t>(i)];
+      int last = i;
+      while (last + 1 < n && plate->samples()[static_cast<size_t>(last + 1)].set == s.set &&
+             plate->samples()[static_cast<size_t>(last + 1)].acquisition == s.acquisition)
+        ++last;
+      std::vector<cv::Point2f> pl, pr;
+      for (const cv::Vec3d& f : nominalFeatures()) {
+        const cv::Vec2d a = sim.rig().projectLeft(s.c_t_p * f);
+        const cv::Vec2d b = sim.rig().projectRight(s.c_t_p * f);
+        pl.emplace_back(static_cast<float>(a[0]), static_cast<float>(a[1]));
+        pr.emplace_back(static_cast<float>(b[0]), static_cast<float>(b[1]));
+      }
+      const auto box = [](const std::vector<cv::Point2f>& pts) {
+        const cv::Rect r = cv::boundingRect(pts);
+        return cv::Rect(r.x - 40, r.y - 40, r.width + 80, r.height + 80);
+      };
+      const cv::Rect bl = box(pl), br = box(pr);
+      protocol +=
+          fmt::format("{},{},{},{},{},{},{},{},{},{},{},{}\n", s.set, s.acquisition, i, last, bl.x,
+                      bl.y, bl.width, bl.height, br.x, br.y, br.width, br.height);
+      i = last + 1;
+    }
+    if (auto ok = writeText(out / "tracker/protocol.csv", protocol); !ok) return ok;
     if (auto ok =
             writeText(out / "tracker/digitization_markers.csv",
                       "tx,ty,tz,q0,qx,qy,qz\n" + poseColumns(plate->digitizationMarkers()) + "\n");

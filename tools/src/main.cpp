@@ -23,6 +23,8 @@ int main(int argc, char** argv) try {
   runners["track"] = pulsetrack::tools::addTrackCommand(app);
   runners["listen"] = pulsetrack::tools::addListenCommand(app);
   runners["ctl"] = pulsetrack::tools::addCtlCommand(app);
+  runners["validate"] = pulsetrack::tools::addValidateCommand(app);
+  runners["analyze"] = pulsetrack::tools::addAnalyzeCommand(app);
   CLI11_PARSE(app, argc, argv);
   for (const CLI::App* sub : app.get_subcommands()) {
     return runners.at(sub->get_name())();

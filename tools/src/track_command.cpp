@@ -21,8 +21,7 @@ namespace pulsetrack::tools {
 namespace {
 
 int error(const char* command, const std::string& message) {
-  fmt::print(stderr, "pulsetrack {}: error: {}\n", command, message);
-  return 1;
+  return commandError(command, message);
 }
 
 vision::Result<cv::Rect> parseRect(const std::string& text, const char* option) {

@@ -45,6 +45,10 @@ struct PlateSpec {
   double max_speed_mm_s = 25.0;
   double max_angular_speed_deg_s = 9.7;
   double tracker_noise_mm = 0.1;  // RMS on the divots' positions
+  // The cameras and the tracker stand still between sessions: O_T_C and the markers' body come
+  // from this seed, so a static and a dynamic session share them (the scene's seed draws the
+  // poses and the noise).
+  int setup_seed = 1;
   double texture_px_per_mm = 20.0;
 };
 

@@ -4,6 +4,7 @@
 
 #include <CLI/CLI.hpp>
 #include <functional>
+#include <string>
 
 namespace pulsetrack::tools {
 
@@ -17,5 +18,10 @@ CommandRunner addMatchCommand(CLI::App& app);
 CommandRunner addTrackCommand(CLI::App& app);
 CommandRunner addListenCommand(CLI::App& app);
 CommandRunner addCtlCommand(CLI::App& app);
+CommandRunner addValidateCommand(CLI::App& app);
+CommandRunner addAnalyzeCommand(CLI::App& app);
+
+// "pulsetrack COMMAND: error: MESSAGE" on stderr; returns 1, the failure exit code.
+int commandError(const char* command, const std::string& message);
 
 }  // namespace pulsetrack::tools
