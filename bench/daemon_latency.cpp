@@ -47,7 +47,7 @@ int waitExit(pid_t pid) {
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   double seconds = 20;
   std::vector<double> rates = {30, 60, 120};
   int features = 100;
@@ -134,4 +134,7 @@ int main(int argc, char** argv) {
   }
   std::filesystem::remove_all(dir);
   return 0;
+} catch (const std::exception& e) {
+  std::fprintf(stderr, "daemon_latency: %s\n", e.what());
+  return 1;
 }

@@ -59,20 +59,87 @@ void namePeaks(std::vector<SpectralPeak>& peaks, double resolution_hz) {
     return best;
   };
   const double tol = std::max(0.03, 1.5 * resolution_hz);
-  if (SpectralPeak* b = strongest(0.1, 0.6)) {
-    b->name = "breathing";
-    const double fb = b->frequency_hz;
-    for (int n = 2; n <= 5; ++n) {
-      if (SpectralPeak* h = strongest(n * fb - tol, n * fb + tol))
-        h->name = fmt::format("breathing harmonic {}", n);
-    }
-  }
+  // Breathing first, then the heart (0.6-2.5 Hz: 36-150 beats per minute) before breathing's
+  // harmonics, which can fall on the heart rate (5 x 0.2 Hz = 1 Hz).
+  SpectralPeak* breathing = strongest(0.1, 0.6);
+  if (breathing != nullptr) breathing->name = "breathing";
   if (SpectralPeak* c = strongest(0.6, 2.5)) {
     c->name = "cardiac";
     const double fc = c->frequency_hz;
     if (SpectralPeak* h = strongest(2 * fc - tol, 2 * fc + tol)) h->name = "cardiac harmonic 2";
   }
+  if (breathing != nullptr) {
+    const double fb = breathing->frequency_hz;
+    for (int n = 2; n <= 4; ++n) {
+      if (SpectralPeak* h = strongest(n * fb - tol, n * fb + tol))
+        h->name = fmt::format("breathing harmonic {}", n);
+    }
+  }
   if (SpectralPeak* v = strongest(0.025, 0.07)) v->name = "vasomotor";
+}
+
+void spectrum(MotionAnalysis& a, const MotionOptions& options) {
+  const size_t ns = a.t.size();
+  a.frequency_hz.clear();
+  a.amplitude_mm.clear();
+  a.peaks.clear();
+  // Spectrum: Hann window, zero padding, amplitude of a sinusoid = 2 |X| / sum(w).
+  const int nfft = cv::getOptimalDFTSize(static_cast<int>(ns) * std::max(1, options.zero_padding));
+  std::vector<double> w(ns);
+  double wsum = 0;
+  for (size_t i = 0; i < ns; ++i) {
+    w[i] = 0.5 - 0.5 * std::cos(2 * M_PI * static_cast<double>(i) / static_cast<double>(ns - 1));
+    wsum += w[i];
+  }
+  const int bins = nfft / 2 + 1;
+  std::vector<double> power(static_cast<size_t>(bins), 0.0);
+  for (int axis = 0; axis < 3; ++axis) {
+    cv::Mat in = cv::Mat::zeros(1, nfft, CV_64F), out;
+    for (size_t i = 0; i < ns; ++i)
+      in.at<double>(0, static_cast<int>(i)) = a.detrended[i][axis] * w[i];
+    cv::dft(in, out, cv::DFT_COMPLEX_OUTPUT);
+    for (int k = 0; k < bins; ++k) {
+      const cv::Vec2d c = out.at<cv::Vec2d>(0, k);
+      const double amp = 2.0 * std::hypot(c[0], c[1]) / wsum;
+      power[static_cast<size_t>(k)] += amp * amp;
+    }
+  }
+  const double df = 1.0 / (a.period_s * nfft);
+  for (int k = 0; k < bins; ++k) {
+    a.frequency_hz.push_back(k * df);
+    a.amplitude_mm.push_back(std::sqrt(power[static_cast<size_t>(k)]));
+  }
+  // Peaks: local maxima above the floor, beyond the window's main lobe at DC.
+  const double duration = a.period_s * static_cast<double>(ns);
+  const double resolution = 1.0 / duration;
+  std::vector<double> tail(a.amplitude_mm.begin() + 1, a.amplitude_mm.end());
+  const double floor = std::max(options.min_peak_mm, options.floor_factor * quantile(tail, 0.5));
+  for (int k = 1; k + 1 < bins; ++k) {
+    const double y0 = a.amplitude_mm[static_cast<size_t>(k - 1)],
+                 y1 = a.amplitude_mm[static_cast<size_t>(k)],
+                 y2 = a.amplitude_mm[static_cast<size_t>(k) + 1];
+    if (!(y1 > y0 && y1 >= y2) || y1 < floor ||
+        a.frequency_hz[static_cast<size_t>(k)] < 1.5 * resolution)
+      continue;
+    const double den2 = y0 - 2 * y1 + y2;
+    const double off = den2 != 0 ? 0.5 * (y0 - y2) / den2 : 0.0;
+    SpectralPeak p;
+    p.frequency_hz = (k + off) * df;
+    p.amplitude_mm = y1 - 0.25 * (y0 - y2) * off;
+    a.peaks.push_back(p);
+  }
+  // Within a main lobe (2 bins of the unpadded length) of a stronger peak: its side lobe.
+  std::vector<SpectralPeak> kept;
+  for (const SpectralPeak& p : a.peaks) {
+    bool shadowed = false;
+    for (const SpectralPeak& q : a.peaks) {
+      if (q.amplitude_mm > p.amplitude_mm &&
+          std::fabs(q.frequency_hz - p.frequency_hz) < 2 * resolution)
+        shadowed = true;
+    }
+    if (!shadowed) kept.push_back(p);
+  }
+  a.peaks = kept;
 }
 
 }  // namespace
@@ -104,7 +171,16 @@ vision::Result<MotionAnalysis> analyzeMotion(const std::vector<record::TrackRow>
       sum += Vec3(r->x, r->y, r->z) - it->second;
       ++n;
     }
-    const Vec3 d = n > 0 ? Vec3(sum / n) : last;
+    // No feature of this frame has a reference (every feature is new: a re-detection replaced
+    // them all): continue the cloud's motion from the two frames before (linearly), when they
+    // are recent; else hold the last displacement.
+    Vec3 d = last;
+    if (n > 0) {
+      d = sum / n;
+    } else if (disp.size() >= 2 && f.t - ts.back() <= 2.5 * (ts.back() - ts[ts.size() - 2])) {
+      const double h = ts.back() - ts[ts.size() - 2];
+      d = disp.back() + (disp.back() - disp[disp.size() - 2]) * ((f.t - ts.back()) / h);
+    }
     for (const record::TrackRow* r : f.ok) {
       const Vec3 p(r->x, r->y, r->z);
       if (!ref.contains(r->id)) ref[r->id] = p - d;
@@ -144,27 +220,53 @@ vision::Result<MotionAnalysis> analyzeMotion(const std::vector<record::TrackRow>
     const std::vector<double> g = naturalCubicSpline(x, y, a.t);
     for (size_t i = 0; i < g.size(); ++i) a.displacement[i][axis] = g[i];
   }
-  // DC and linear trend, least squares.
-  const auto n = static_cast<double>(a.t.size());
-  double st = 0, stt = 0;
-  for (const double t : a.t) {
-    st += t;
-    stt += t * t;
+  // DC and trend, then the spectrum and its peaks; then DC, trend and the peaks' sinusoids
+  // fitted together (a sinusoid of few periods is not orthogonal to a line: fitted alone, the
+  // trend takes part of it), the trend removed, the spectrum again. The peaks' amplitudes are the
+  // joint fit's.
+  const size_t ns = a.t.size();
+  std::vector<double> fit_freqs;
+  Vec3 intercept = Vec3::Zero();
+  std::vector<double> ls_amplitude;
+  for (int pass = 0; pass < 3; ++pass) {
+    const auto cols = static_cast<Eigen::Index>(2 + 2 * fit_freqs.size());
+    Eigen::MatrixXd design(static_cast<Eigen::Index>(ns), cols);
+    Eigen::MatrixXd rhs(static_cast<Eigen::Index>(ns), 3);
+    for (size_t i = 0; i < ns; ++i) {
+      const auto r = static_cast<Eigen::Index>(i);
+      design(r, 0) = 1.0;
+      design(r, 1) = a.t[i];
+      for (size_t k = 0; k < fit_freqs.size(); ++k) {
+        design(r, static_cast<Eigen::Index>(2 + 2 * k)) =
+            std::cos(2 * M_PI * fit_freqs[k] * a.t[i]);
+        design(r, static_cast<Eigen::Index>(3 + 2 * k)) =
+            std::sin(2 * M_PI * fit_freqs[k] * a.t[i]);
+      }
+      rhs.row(r) = a.displacement[i].transpose();
+    }
+    const Eigen::MatrixXd coef = design.colPivHouseholderQr().solve(rhs);
+    intercept = coef.row(0).transpose();
+    a.trend_mm_per_s = coef.row(1).transpose();
+    ls_amplitude.clear();
+    for (size_t k = 0; k < fit_freqs.size(); ++k)
+      ls_amplitude.push_back(
+          std::sqrt(coef.row(static_cast<Eigen::Index>(2 + 2 * k)).squaredNorm() +
+                    coef.row(static_cast<Eigen::Index>(3 + 2 * k)).squaredNorm()));
+    if (pass == 2) break;
+    a.detrended.resize(ns);
+    for (size_t i = 0; i < ns; ++i)
+      a.detrended[i] = a.displacement[i] - intercept - a.trend_mm_per_s * a.t[i];
+    spectrum(a, options);
+    fit_freqs.clear();
+    for (const SpectralPeak& p : a.peaks) fit_freqs.push_back(p.frequency_hz);
   }
-  Vec3 sy = Vec3::Zero(), sty = Vec3::Zero();
-  for (size_t i = 0; i < a.t.size(); ++i) {
-    sy += a.displacement[i];
-    sty += a.t[i] * a.displacement[i];
-  }
-  const double den = n * stt - st * st;
-  a.trend_mm_per_s = (n * sty - st * sy) / den;
-  const Vec3 intercept = (sy - a.trend_mm_per_s * st) / n;
-  a.detrended.resize(a.t.size());
+  for (size_t k = 0; k < a.peaks.size() && k < ls_amplitude.size(); ++k)
+    a.peaks[k].amplitude_mm = ls_amplitude[k];
+  // A peak the joint fit finds below the threshold was leakage of the trend, not motion.
+  std::erase_if(a.peaks,
+                [&](const SpectralPeak& p) { return p.amplitude_mm < options.min_peak_mm; });
   Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-  for (size_t i = 0; i < a.t.size(); ++i) {
-    a.detrended[i] = a.displacement[i] - intercept - a.trend_mm_per_s * a.t[i];
-    cov += a.detrended[i] * a.detrended[i].transpose();
-  }
+  for (const Vec3& d : a.detrended) cov += d * d.transpose();
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(cov);
   a.principal_axis = es.eigenvectors().col(2);
   if (a.principal_axis.z() < 0) a.principal_axis = -a.principal_axis;
@@ -175,65 +277,7 @@ vision::Result<MotionAnalysis> analyzeMotion(const std::vector<record::TrackRow>
     hi = std::max(hi, a.along_axis.back());
   }
   a.peak_to_peak_mm = hi - lo;
-
-  // Spectrum: Hann window, zero padding, amplitude of a sinusoid = 2 |X| / sum(w).
-  const size_t ns = a.t.size();
-  const int nfft = cv::getOptimalDFTSize(static_cast<int>(ns) * std::max(1, options.zero_padding));
-  std::vector<double> w(ns);
-  double wsum = 0;
-  for (size_t i = 0; i < ns; ++i) {
-    w[i] = 0.5 - 0.5 * std::cos(2 * M_PI * static_cast<double>(i) / static_cast<double>(ns - 1));
-    wsum += w[i];
-  }
-  const int bins = nfft / 2 + 1;
-  std::vector<double> power(static_cast<size_t>(bins), 0.0);
-  for (int axis = 0; axis < 3; ++axis) {
-    cv::Mat in = cv::Mat::zeros(1, nfft, CV_64F), out;
-    for (size_t i = 0; i < ns; ++i)
-      in.at<double>(0, static_cast<int>(i)) = a.detrended[i][axis] * w[i];
-    cv::dft(in, out, cv::DFT_COMPLEX_OUTPUT);
-    for (int k = 0; k < bins; ++k) {
-      const cv::Vec2d c = out.at<cv::Vec2d>(0, k);
-      const double amp = 2.0 * std::hypot(c[0], c[1]) / wsum;
-      power[static_cast<size_t>(k)] += amp * amp;
-    }
-  }
-  const double df = 1.0 / (a.period_s * nfft);
-  for (int k = 0; k < bins; ++k) {
-    a.frequency_hz.push_back(k * df);
-    a.amplitude_mm.push_back(std::sqrt(power[static_cast<size_t>(k)]));
-  }
-  // Peaks: local maxima above the floor, beyond the window's main lobe at DC.
-  const double duration = a.period_s * static_cast<double>(ns);
-  const double resolution = 1.0 / duration;
-  std::vector<double> tail(a.amplitude_mm.begin() + 1, a.amplitude_mm.end());
-  const double floor = std::max(options.min_peak_mm, options.floor_factor * quantile(tail, 0.5));
-  for (int k = 1; k + 1 < bins; ++k) {
-    const double y0 = a.amplitude_mm[static_cast<size_t>(k - 1)],
-                 y1 = a.amplitude_mm[static_cast<size_t>(k)],
-                 y2 = a.amplitude_mm[static_cast<size_t>(k + 1)];
-    if (!(y1 > y0 && y1 >= y2) || y1 < floor ||
-        a.frequency_hz[static_cast<size_t>(k)] < 1.5 * resolution)
-      continue;
-    const double den2 = y0 - 2 * y1 + y2;
-    const double off = den2 != 0 ? 0.5 * (y0 - y2) / den2 : 0.0;
-    SpectralPeak p;
-    p.frequency_hz = (k + off) * df;
-    p.amplitude_mm = y1 - 0.25 * (y0 - y2) * off;
-    a.peaks.push_back(p);
-  }
-  // Within a main lobe (2 bins of the unpadded length) of a stronger peak: its side lobe.
-  std::vector<SpectralPeak> kept;
-  for (const SpectralPeak& p : a.peaks) {
-    bool shadowed = false;
-    for (const SpectralPeak& q : a.peaks) {
-      if (q.amplitude_mm > p.amplitude_mm &&
-          std::fabs(q.frequency_hz - p.frequency_hz) < 2 * resolution)
-        shadowed = true;
-    }
-    if (!shadowed) kept.push_back(p);
-  }
-  a.peaks = kept;
+  const double resolution = 1.0 / (a.period_s * static_cast<double>(ns));
   namePeaks(a.peaks, resolution);
   return a;
 }

@@ -33,6 +33,7 @@ PlaneFit fitPlane(const std::vector<Vec3>& points) {
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(c);
   f.normal = es.eigenvectors().col(0).normalized();  // the smallest eigenvalue's
   std::vector<double> d;
+  d.reserve(points.size());
   for (const Vec3& p : points) d.push_back(std::fabs((p - f.centroid).dot(f.normal)));
   double sum = 0, ss = 0;
   for (const double x : d) sum += x;
@@ -50,6 +51,7 @@ Vec3 projectOntoPlane(const PlaneFit& plane, const Vec3& p) {
 DivotCalibration calibrateDivots(const std::array<Vec3, 8>& digitized_o, const Pose& o_t_m) {
   DivotCalibration c;
   std::vector<Vec3> in_m;
+  in_m.reserve(digitized_o.size());
   for (const Vec3& p : digitized_o) in_m.push_back(o_t_m.inverse() * p);  // eq. (6)
   c.plane = fitPlane(in_m);
   for (size_t i = 0; i < 8; ++i) c.in_markers[i] = projectOntoPlane(c.plane, in_m[i]);
@@ -98,7 +100,8 @@ Pose fitRigid(const std::vector<Vec3>& from, const std::vector<Vec3>& to) {
   Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
   for (size_t i = 0; i < from.size(); ++i) h += (from[i] - ca) * (to[i] - cb).transpose();
   const Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  const Eigen::Matrix3d v = svd.matrixV(), u = svd.matrixU();
+  const Eigen::Matrix3d& v = svd.matrixV();
+  const Eigen::Matrix3d& u = svd.matrixU();
   const double d = (v * u.transpose()).determinant() < 0 ? -1.0 : 1.0;
   Pose t = Pose::Identity();
   t.linear() = v * Eigen::Vector3d(1, 1, d).asDiagonal() * u.transpose();

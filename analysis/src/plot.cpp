@@ -198,7 +198,7 @@ Figure::Figure(int width, int height, int rows, int cols, std::string title)
       title_(std::move(title)),
       axes_(static_cast<size_t>(rows * cols)) {}
 
-Axes& Figure::at(int row, int col) { return axes_[static_cast<size_t>(row * cols_ + col)]; }
+Axes& Figure::at(int row, int col) { return axes_[(static_cast<size_t>(row) * cols_) + col]; }
 
 cv::Mat Figure::render() const {
   cv::Mat img(height_, width_, CV_8UC3, cv::Scalar(255, 255, 255));
@@ -207,7 +207,7 @@ cv::Mat Figure::render() const {
   const int cw = width_ / cols_, ch = (height_ - top) / rows_;
   for (int r = 0; r < rows_; ++r) {
     for (int c = 0; c < cols_; ++c)
-      drawAxes(img, {c * cw, top + r * ch, cw, ch}, axes_[static_cast<size_t>(r * cols_ + c)]);
+      drawAxes(img, {c * cw, top + r * ch, cw, ch}, axes_[(static_cast<size_t>(r) * cols_) + c]);
   }
   return img;
 }

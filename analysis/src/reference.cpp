@@ -13,7 +13,7 @@ using vision::fail;
 
 namespace {
 
-std::string trim(std::string s) {
+std::string trim(const std::string& s) {
   const auto b = s.find_first_not_of(" \t\r\"");
   const auto e = s.find_last_not_of(" \t\r\"");
   return b == std::string::npos ? "" : s.substr(b, e - b + 1);
@@ -88,7 +88,7 @@ vision::Result<PoseSeries> readPoses(const std::filesystem::path& path) {
   std::array<int, 12> cm{};
   for (int r = 0; r < 3; ++r)
     for (int c = 0; c < 4; ++c)
-      cm[static_cast<size_t>(4 * r + c)] = t.column({fmt::format("m{}{}", r, c).c_str()});
+      cm[(4 * static_cast<size_t>(r)) + c] = t.column({fmt::format("m{}{}", r, c).c_str()});
   const bool quat = std::all_of(cq.begin(), cq.end(), [](int c) { return c >= 0; }) &&
                     std::all_of(ct.begin(), ct.end(), [](int c) { return c >= 0; });
   const bool matrix = std::all_of(cm.begin(), cm.end(), [](int c) { return c >= 0; });

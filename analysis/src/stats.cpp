@@ -114,7 +114,7 @@ std::vector<PairwiseComparison> dunnBonferroni(const std::vector<std::vector<dou
   const Ranked r = rankAll(groups);
   const double n = r.n;
   const size_t k = groups.size();
-  const double pairs = static_cast<double>(k * (k - 1) / 2);
+  const double pairs = static_cast<double>(k) * static_cast<double>(k - 1) / 2.0;
   const double var = n * (n + 1.0) / 12.0 - r.ties / (12.0 * (n - 1.0));
   std::vector<PairwiseComparison> out;
   for (size_t a = 0; a < k; ++a) {
@@ -138,7 +138,7 @@ std::vector<PairwiseComparison> dunnBonferroni(const std::vector<std::vector<dou
   return out;
 }
 
-std::vector<double> equalCountLimits(std::vector<double> key, int groups) {
+std::vector<double> equalCountLimits(const std::vector<double>& key, int groups) {
   std::vector<double> limits;
   for (int i = 1; i < groups; ++i) limits.push_back(quantile(key, double(i) / groups));
   return limits;

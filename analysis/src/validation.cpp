@@ -225,7 +225,7 @@ vision::Result<ValidationResult> validate(const ValidationInputs& in,
       const Vec3 rv = aa.angle() * aa.axis() * 180.0 / M_PI;
       for (int k = 0; k < 3; ++k) {
         axes[static_cast<size_t>(k)].push_back(std::fabs(e.translation()[k]));
-        axes[static_cast<size_t>(3 + k)].push_back(std::fabs(rv[k]));
+        axes[3 + static_cast<size_t>(k)].push_back(std::fabs(rv[k]));
       }
     }
     for (size_t k = 0; k < 6; ++k) res.table2[k] = summarize(axes[k]);

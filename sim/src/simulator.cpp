@@ -144,8 +144,8 @@ vision::Result<void> writeSimulation(StereoSimulator& sim, const std::filesystem
     for (int i = 0; i < n;) {
       const PlateSample& s = plate->samples()[static_cast<size_t>(i)];
       int last = i;
-      while (last + 1 < n && plate->samples()[static_cast<size_t>(last + 1)].set == s.set &&
-             plate->samples()[static_cast<size_t>(last + 1)].acquisition == s.acquisition)
+      while (last + 1 < n && plate->samples()[static_cast<size_t>(last) + 1].set == s.set &&
+             plate->samples()[static_cast<size_t>(last) + 1].acquisition == s.acquisition)
         ++last;
       std::vector<cv::Point2f> pl, pr;
       for (const cv::Vec3d& f : nominalFeatures()) {

@@ -10,8 +10,8 @@
 //   - DC and linear trend removed (the trend, the brain's slow shift or sag, is reported);
 //   - spectrum per axis by FFT (Hann window, zero padding), its 3D amplitude
 //     sqrt(Ax^2 + Ay^2 + Az^2) in mm, peaks located by parabolic interpolation and named:
-//     vasomotor (0.025-0.07 Hz), breathing (strongest in 0.1-0.6 Hz) and its harmonics,
-//     cardiac (strongest remaining in 0.6-2.5 Hz) and its harmonic;
+//     breathing (strongest in 0.1-0.6 Hz), cardiac (strongest remaining in 0.6-2.5 Hz) and its
+//     harmonic, breathing's harmonics 2-4, vasomotor (0.025-0.07 Hz);
 //   - per-feature speeds between consecutive frames (mean, sigma, max), as section 6.
 
 #include <string>

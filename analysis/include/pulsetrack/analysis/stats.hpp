@@ -42,6 +42,6 @@ std::vector<PairwiseComparison> dunnBonferroni(const std::vector<std::vector<dou
 double chiSquareSurvival(double x, int dof);
 
 // Groups of (nearly) equal size by the value of `key`: the tertile (or n-tile) limits.
-std::vector<double> equalCountLimits(std::vector<double> key, int groups);
+std::vector<double> equalCountLimits(const std::vector<double>& key, int groups);
 
 }  // namespace pulsetrack::analysis
