@@ -43,6 +43,24 @@ rt::ThreadPolicy policy(TableReader& r, const char* key, const rt::ThreadPolicy&
   return p;
 }
 
+void camera(const toml::table& t, const std::string& file, const std::string& prefix,
+            drivers::V4l2CameraConfig& c, std::string& libcamera_id, std::string& error) {
+  TableReader s(t, file, prefix, &error);
+  c.device = s.string("device", c.device);
+  libcamera_id = s.string("libcamera_id", "");
+  c.width = s.integer("width", c.width, 16, 16384);
+  c.height = s.integer("height", c.height, 16, 16384);
+  c.pixel_format = s.string("pixel_format", "GREY", {"GREY", "Y16", "YUYV"});
+  c.buffers = s.integer("buffers", c.buffers, 3, 32);
+  const int exposure = s.integer("exposure_us", 0, 0, 10'000'000);
+  if (exposure > 0) c.exposure_us = exposure;
+  const int gain = s.integer("gain", -1, -1, 1'000'000);
+  if (gain >= 0) c.gain = gain;
+  c.trigger_control = static_cast<uint32_t>(s.integer("trigger_control", 0, 0, 0x7fffffff));
+  c.trigger_value = s.integer("trigger_value", 1, -1'000'000, 1'000'000);
+  s.finish();
+}
+
 }  // namespace
 
 vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
@@ -62,8 +80,11 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
   }
   if (const toml::table* t = r.table("source")) {
     TableReader s(*t, file, "source", &error);
-    const std::string kind = s.string("kind", "sim", {"sim", "replay"});
-    c.source = kind == "replay" ? SourceKind::kReplay : SourceKind::kSim;
+    const std::string kind = s.string("kind", "sim", {"sim", "replay", "v4l2", "libcamera"});
+    c.source = kind == "replay"      ? SourceKind::kReplay
+               : kind == "v4l2"      ? SourceKind::kV4l2
+               : kind == "libcamera" ? SourceKind::kLibcamera
+                                     : SourceKind::kSim;
     const std::string scene = s.string("scene", "scenes/cortex-60s.toml");
     const std::string recording = s.string("recording", "");
     c.scene = path.parent_path() / scene;
@@ -73,6 +94,24 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     c.pace = pace == "fast" ? Pace::kFast : pace == "rate" ? Pace::kRate : Pace::kRealtime;
     c.preload = s.boolean("preload", c.preload);
     c.loop = s.boolean("loop", c.loop);
+    const std::string rig = s.string("rig", "");
+    if (!rig.empty()) c.rig = path.parent_path() / rig;
+    c.left_camera.device = "/dev/video0";
+    c.right_camera.device = "/dev/video1";
+    if (const toml::table* lt = s.table("left"))
+      camera(*lt, file, "source.left", c.left_camera, c.left_libcamera_id, error);
+    if (const toml::table* rtab = s.table("right"))
+      camera(*rtab, file, "source.right", c.right_camera, c.right_libcamera_id, error);
+    const bool hardware = c.source == SourceKind::kV4l2 || c.source == SourceKind::kLibcamera;
+    if (hardware && c.rig.empty() && error.empty())
+      error = fmt::format("{}: source.rig (the rig's calibration) is required with kind = \"{}\"",
+                          file, kind);
+    if (c.source == SourceKind::kLibcamera &&
+        (c.left_libcamera_id.empty() || c.right_libcamera_id.empty()) && error.empty())
+      error = fmt::format(
+          "{}: source.left.libcamera_id and source.right.libcamera_id are required with kind = "
+          "\"libcamera\" (pulsetrackd --list-cameras shows them)",
+          file);
     if (const toml::table* f = s.table("faults")) {
       TableReader ft(*f, file, "source.faults", &error);
       c.sim_faults.missing_trigger_every = ft.integer("missing_trigger_every", 0, 0, 1000000);
@@ -93,6 +132,25 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
       error = fmt::format("{}: source.recording is required with kind = \"replay\"", file);
   } else {
     c.scene = path.parent_path() / "scenes/cortex-60s.toml";
+  }
+  if (const toml::table* t = r.table("trigger")) {
+    TableReader s(*t, file, "trigger", &error);
+    c.trigger_box = s.string("kind", "none", {"none", "box"}) == "box";
+    c.trigger_vendor = static_cast<uint16_t>(s.integer("vendor_id", 0x1209, 0, 0xffff));
+    c.trigger_product = static_cast<uint16_t>(s.integer("product_id", 0x7054, 0, 0xffff));
+    c.trigger_serial = s.string("serial", "");
+    c.trigger_pulse_us = s.integer("pulse_width_us", 100, 1, 100000);
+    s.finish();
+  }
+  if (const toml::table* t = r.table("recorder")) {
+    TableReader s(*t, file, "recorder", &error);
+    c.record = s.boolean("enabled", false);
+    const std::string dir = s.string("dir", "/var/lib/pulsetrack/recordings");
+    c.record_dir = path.parent_path() / dir;
+    c.record_slots = s.integer("slots", 32, 2, 4096);
+    s.finish();
+  } else {
+    c.record_dir = "/var/lib/pulsetrack/recordings";
   }
   if (const toml::table* t = r.table("tracker")) {
     TableReader s(*t, file, "tracker", &error);

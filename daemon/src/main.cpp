@@ -11,6 +11,10 @@
 #include "pulsetrack/daemon/config.hpp"
 #include "pulsetrack/daemon/notify.hpp"
 #include "pulsetrack/daemon/pipeline.hpp"
+#include "pulsetrack/drivers/libcamera_source.hpp"
+#include "pulsetrack/drivers/trigger_box.hpp"
+#include "pulsetrack/drivers/v4l2.hpp"
+#include "pulsetrack/record/live_recorder.hpp"
 #include "pulsetrack/sim/scene.hpp"
 #include "pulsetrack/vision/stereo_rig.hpp"
 
@@ -36,13 +40,27 @@ int run(int argc, char** argv) {
   app.add_option("--run-for", run_for, "Stop after this many seconds (tests, benchmarks)");
   app.add_option("--stall-track-after", stall_after,
                  "Fault injection: stall the track stage for 5 s after this many frames");
+  bool list_cameras = false;
+  app.add_flag("--list-cameras", list_cameras,
+               "List the cameras libcamera sees (their ids for the config), exit");
   CLI11_PARSE(app, argc, argv);
+  if (list_cameras) {
+    auto cams = drivers::listLibcameraCameras();
+    if (!cams) {
+      std::fprintf(stderr, "pulsetrackd: %s\n", cams.error().message.c_str());
+      return 1;
+    }
+    for (const auto& c : *cams) std::printf("%s  %s\n", c.id.c_str(), c.model.c_str());
+    if (cams->empty()) std::printf("libcamera sees no camera (V4L2 devices: ls /dev/video*)\n");
+    return 0;
+  }
 
   auto config = daemon::loadDaemonConfig(config_path);
   if (!config) {
     std::fprintf(stderr, "pulsetrackd: %s\n", config.error().message.c_str());
     return 1;
   }
+  std::unique_ptr<drivers::TriggerBox> trigger;  // outlives the source that asks it
   std::unique_ptr<drivers::CameraSource> source;
   if (config->source == daemon::SourceKind::kSim) {
     auto scene = sim::loadScene(config->scene);
@@ -57,6 +75,39 @@ int run(int argc, char** argv) {
     }
     scene->supersample = 1;  // live rendering
     source = drivers::makeSimSource(*scene, *rig, config->fps, config->loop, config->sim_faults);
+  } else if (config->source == daemon::SourceKind::kV4l2 ||
+             config->source == daemon::SourceKind::kLibcamera) {
+    auto rig = vision::loadRig(config->rig);
+    if (!rig) {
+      std::fprintf(stderr, "pulsetrackd: %s\n", rig.error().message.c_str());
+      return 1;
+    }
+    if (config->trigger_box && !check) {
+      auto hid = drivers::openHidDevice(config->trigger_vendor, config->trigger_product,
+                                        config->trigger_serial);
+      if (!hid) {
+        std::fprintf(stderr, "pulsetrackd: %s\n", hid.error().message.c_str());
+        return 1;
+      }
+      trigger = std::make_unique<drivers::TriggerBox>(
+          std::move(*hid), config->fps, static_cast<uint16_t>(config->trigger_pulse_us));
+    }
+    if (config->source == daemon::SourceKind::kV4l2) {
+      drivers::V4l2StereoConfig v;
+      v.left = config->left_camera;
+      v.right = config->right_camera;
+      v.fps = config->fps;
+      source = drivers::makeV4l2Source(drivers::systemV4l2Io(), v, *rig, trigger.get());
+    } else {
+      drivers::LibcameraStereoConfig l;
+      l.left_id = config->left_libcamera_id;
+      l.right_id = config->right_libcamera_id;
+      l.width = config->left_camera.width;
+      l.height = config->left_camera.height;
+      l.buffers = config->left_camera.buffers;
+      l.fps = config->fps;
+      source = drivers::makeLibcameraSource(l, *rig, trigger.get());
+    }
   } else {
     drivers::ReplayOptions o;
     o.pace = config->pace == daemon::Pace::kFast   ? drivers::ReplayOptions::Pace::kFast
@@ -84,7 +135,36 @@ int run(int argc, char** argv) {
   }
   std::signal(SIGTERM, onSignal);
   std::signal(SIGINT, onSignal);
-  daemon::Pipeline pipeline(*config, std::move(source), *participant);
+  // A file-size limit reached by the recorder must fail its write (EFBIG, handled), not kill
+  // the tracking.
+  std::signal(SIGXFSZ, SIG_IGN);
+  if (trigger) {
+    if (auto ok = trigger->start(); !ok) {
+      std::fprintf(stderr, "pulsetrackd: %s\n", ok.error().message.c_str());
+      return 1;
+    }
+  }
+  std::unique_ptr<record::LiveRecorder> recorder;
+  if (config->record) {
+    const auto dir = config->record_dir / daemon::recordingName(config->rig_id);
+    record::LiveRecorderOptions o;
+    o.dir = dir;
+    o.slots = config->record_slots;
+    o.manifest.source = "pulsetrackd " + source->name();
+    o.manifest.rig_id = config->rig_id;
+    o.manifest.width = source->rig().left.imageSize().width;
+    o.manifest.height = source->rig().left.imageSize().height;
+    o.manifest.nominal_fps = config->fps;
+    auto r = record::LiveRecorder::start(o, source->rig());
+    if (!r) {
+      // Tracking matters more than the recording: say it and run on.
+      std::fprintf(stderr, "pulsetrackd: warning: not recording: %s\n", r.error().message.c_str());
+    } else {
+      recorder = std::move(*r);
+      std::fprintf(stderr, "pulsetrackd: recording to %s\n", dir.c_str());
+    }
+  }
+  daemon::Pipeline pipeline(*config, std::move(source), *participant, recorder.get());
   auto started = pipeline.start();
   if (!started) {
     std::fprintf(stderr, "pulsetrackd: %s\n", started.error().message.c_str());
@@ -116,6 +196,15 @@ int run(int argc, char** argv) {
   }
   notifier.stopping();
   pipeline.stop();
+  if (recorder) {
+    recorder->stop();
+    const auto st = recorder->status();
+    std::fprintf(stderr, "pulsetrackd: recorded %llu frames (%llu skipped: disk behind)%s%s\n",
+                 static_cast<unsigned long long>(st.written),
+                 static_cast<unsigned long long>(st.thinned),
+                 st.error.empty() ? "" : "; stopped: ", st.error.c_str());
+  }
+  if (trigger) trigger->stop();
   std::fprintf(stderr, "pulsetrackd: stopped after %llu tracked pairs\n",
                static_cast<unsigned long long>(pipeline.tracked()));
   return 0;

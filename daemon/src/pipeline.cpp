@@ -49,9 +49,18 @@ bool waitFor(std::atomic<uint64_t>& seq, uint64_t& seen, const std::atomic<bool>
 
 }  // namespace
 
+std::string recordingName(const std::string& rig_id) {
+  const std::time_t now = std::time(nullptr);
+  std::tm utc{};
+  gmtime_r(&now, &utc);
+  std::array<char, 32> stamp{};
+  std::strftime(stamp.data(), stamp.size(), "%Y%m%d-%H%M%S", &utc);
+  return rig_id + "-" + stamp.data();
+}
+
 Pipeline::Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSource> source,
-                   const dds::Participant& participant)
-    : config_(config), source_(std::move(source)), participant_(participant) {
+                   const dds::Participant& participant, record::LiveRecorder* recorder)
+    : config_(config), source_(std::move(source)), recorder_(recorder), participant_(participant) {
   const cv::Size size = source_->rig().left.imageSize();
   for (Frame& f : frames_.slots()) {
     f.pair.left.create(size, CV_8UC1);
@@ -129,6 +138,12 @@ void Pipeline::captureLoop() {
     if (n == drivers::Next::kFrame) {
       f.captured_ns = now;
       capture_lat_.record(static_cast<uint64_t>(std::max<int64_t>(0, now - f.pair.t_left_ns)));
+      if (recorder_ != nullptr) {  // a copy into a free slot, or a counted skip: never a wait
+        if (recorded_ == UINT64_MAX) recorded_ = f.pair.trigger_seq;  // the recording's frame 0
+        (void)recorder_->offer({f.pair.trigger_seq - recorded_, f.pair.trigger_seq,
+                                f.pair.t_left_ns, f.pair.t_right_ns, 0},
+                               f.pair.left, f.pair.right);
+      }
       frames_.publish();
       last_frame_ns_.store(now, std::memory_order_relaxed);
       faulted = false;
@@ -419,6 +434,15 @@ State Pipeline::health(const Notifier& notifier) {
   h.source_state = source_state.data();
   std::string trigger_state = source_->triggerState();
   h.trigger_state = trigger_state.data();
+  std::string recorder_state = "off";
+  if (recorder_ != nullptr) {
+    const record::RecorderStatus rs = recorder_->status();
+    recorder_state = rs.error.empty()
+                         ? fmt::format("recording {}: {} frames, {} skipped (disk behind)",
+                                       recorder_->dir().string(), rs.written, rs.thinned)
+                         : fmt::format("stopped after {} frames: {}", rs.written, rs.error);
+  }
+  h.recorder_state = recorder_state.data();
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
   std::string err =
       quiet    ? fmt::format("no frame from the source for {} ms{}", (now - last_frame) / 1'000'000,

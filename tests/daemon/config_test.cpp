@@ -49,7 +49,8 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
               "pulsetrackd.toml:3: unknown key 'tracker.roi_lft'");
   expectError("[dds]\ndomain_id = 300\n", "pulsetrackd.toml:2: dds.domain_id: expected an integer");
   expectError("[dds]\ndomain_id = \"7\"\n", "dds.domain_id");
-  expectError("[source]\nkind = \"usb\"\n", "source.kind: expected one of replay, sim");
+  expectError("[source]\nkind = \"usb\"\n",
+              "source.kind: expected one of libcamera, replay, sim, v4l2");
   expectError("[source]\nkind = \"replay\"\n", "source.recording is required");
   expectError("[tracker]\nroi_left = [1, 2, 3]\n", "tracker.roi_left: expected 4 to 4 numbers");
   expectError("[tracker]\nroi_left = [1.5, 2, 3, 4]\n", "tracker.roi_left: expected 4 whole");
@@ -61,6 +62,14 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError("rig_id = \"\"\n", "rig_id must not be empty");
   expectError("[source.faults]\nmissing_trigger_every = -1\n",
               "pulsetrackd.toml:2: source.faults.missing_trigger_every");
+  expectError("[source]\nkind = \"v4l2\"\n",
+              "source.rig (the rig's calibration) is required with kind = \"v4l2\"");
+  expectError("[source]\nkind = \"libcamera\"\nrig = \"r.yaml\"\n", "source.left.libcamera_id and");
+  expectError("[source.left]\npixel_format = \"RGB\"\n",
+              "source.left.pixel_format: expected one of");
+  expectError("[source.right]\nbuffers = 1\n", "pulsetrackd.toml:2: source.right.buffers");
+  expectError("[trigger]\nkind = \"usb\"\n", "trigger.kind: expected one of box, none");
+  expectError("[recorder]\nslots = 1\n", "recorder.slots");
   expectError("[source.faults]\nright_drop_every = 3\n",
               "unknown key 'source.faults.right_drop_every'");
   expectError(

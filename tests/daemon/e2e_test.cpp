@@ -13,12 +13,14 @@
 
 #include <chrono>
 #include <csignal>
+#include <filesystem>
 #include <fstream>
 #include <functional>
 #include <map>
 #include <thread>
 
 #include "pulsetrack/dds/dds.hpp"
+#include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/sim/scene.hpp"
 #include "pulsetrack/vision/stereo_rig.hpp"
 #include "test_util.hpp"
@@ -36,7 +38,7 @@ struct Daemon {
   std::vector<std::pair<double, std::string>> notes;  // (seconds since start, datagram)
 
   Daemon(const test::TempDir& dir, uint32_t domain, const std::vector<std::string>& extra,
-         const std::string& source_extra = "") {
+         const std::string& source_extra = "", const std::vector<std::string>& wrapper = {}) {
     const auto cfg = dir.path() / "pulsetrackd.toml";
     std::ofstream(cfg) << "rig_id = \"rig-e2e\"\n[dds]\ndomain_id = " << domain
                        << "\n[source]\nkind = \"sim\"\nscene = \"" << kScene << "\"\nfps = 10.0\n"
@@ -54,13 +56,15 @@ struct Daemon {
     setenv("NOTIFY_SOCKET", sock.c_str(), 1);
     setenv("WATCHDOG_USEC", "1000000", 1);
     unsetenv("WATCHDOG_PID");
-    std::vector<std::string> args = {PULSETRACKD, "-c", cfg.string()};
+    std::vector<std::string> args = wrapper;
+    for (const std::string& arg : {std::string(PULSETRACKD), std::string("-c"), cfg.string()})
+      args.push_back(arg);
     args.insert(args.end(), extra.begin(), extra.end());
     std::vector<char*> argv;
     argv.reserve(args.size() + 1);
     for (auto& s : args) argv.push_back(s.data());
     argv.push_back(nullptr);
-    EXPECT_EQ(posix_spawn(&pid, PULSETRACKD, nullptr, nullptr, argv.data(), environ), 0);
+    EXPECT_EQ(posix_spawn(&pid, args[0].c_str(), nullptr, nullptr, argv.data(), environ), 0);
     unsetenv("NOTIFY_SOCKET");
     unsetenv("WATCHDOG_USEC");
   }
@@ -290,6 +294,62 @@ TEST(Daemon, MissingTriggersAndUnpairedFramesAreCountedNeverPairedWrongly) {
   EXPECT_EQ(trigger_state, "software 10 Hz");
   EXPECT_GE(degraded, 2);
   EXPECT_NE(reason.find("gave no frame pair"), std::string::npos) << reason;
+  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+}
+
+// The recorder on a disk that fills (the kernel's file-size limit, prlimit): health says the
+// recording stopped and why, tracking goes on, the recording reads back to its last frame.
+TEST(Daemon, ARecordingThatFillsTheDiskStopsCleanlyAndTrackingGoesOn) {
+  if (access("/usr/bin/prlimit", X_OK) != 0)
+    GTEST_SKIP() << "SKIP: /usr/bin/prlimit (util-linux) is missing";
+  test::TempDir dir;
+  const uint32_t domain = 80;
+  const auto recordings = dir.path() / "recordings";
+  Daemon d(dir, domain, {"--run-for", "60"},
+           "[recorder]\nenabled = true\ndir = \"" + recordings.string() + "\"\n",
+           {"/usr/bin/prlimit", "--fsize=12000000"});
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+  auto p = dds::Participant::create(domain);
+  ASSERT_TRUE(p);
+  auto features = dds::Reader::create(
+      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
+  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                                    dds::Profile::kTransientLocal);
+  ASSERT_TRUE(features && health);
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  pulsetrack_msgs_msg_dds__Features_ f{};
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  std::string recorder, stopped;
+  int after_stop = 0, not_ok_after = 0;
+  while (secs() < 50.0 && after_stop < 10) {
+    d.drain(secs());
+    if (features->takeOne(&f, std::chrono::milliseconds(50)) && !stopped.empty()) ++after_stop;
+    while (health->takeOne(&h, std::chrono::milliseconds(0))) {
+      recorder = h.recorder_state;
+      if (recorder.starts_with("stopped")) stopped = recorder;
+      if (!stopped.empty() && h.state != 1) ++not_ok_after;
+    }
+  }
+  kill(d.pid, SIGTERM);
+  EXPECT_EQ(d.wait(secs), 0);
+  std::cout << "recorder: " << stopped << "\n";
+  ASSERT_FALSE(stopped.empty()) << "last recorder state: " << recorder;
+  EXPECT_NE(stopped.find("not recorded"), std::string::npos) << stopped;
+  EXPECT_GE(after_stop, 10);  // features still published after the disk filled
+  EXPECT_EQ(not_ok_after, 0);
+  ASSERT_TRUE(std::filesystem::exists(recordings));
+  const auto rec = std::filesystem::directory_iterator(recordings)->path();
+  auto r = record::Reader::open(rec);
+  ASSERT_TRUE(r) << r.error().message;
+  EXPECT_GT(r->size(), 2U);
+  cv::Mat l, rr;
+  for (size_t i = 0; i < r->size(); ++i) EXPECT_TRUE(r->read(i, l, rr)) << i;
+  const auto n = std::stoul(stopped.substr(std::string("stopped after ").size()));
+  EXPECT_EQ(r->size(), n);
   dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
   dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }

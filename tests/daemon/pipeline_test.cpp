@@ -8,6 +8,7 @@
 
 #include <thread>
 
+#include "drivers/fake_v4l2.hpp"
 #include "pulsetrack/sim/scene.hpp"
 #include "test_util.hpp"
 
@@ -110,6 +111,91 @@ TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
   EXPECT_NE(degraded_text.find("no frame from the source for"), std::string::npos) << degraded_text;
   EXPECT_NE(degraded_text.find("ENODEV"), std::string::npos) << degraded_text;
   EXPECT_GT(pipeline.tracked(), tracked_before);  // tracking resumed
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+}
+
+// The V4L2 source on the kernel emulation, the simulator's images in its buffers: a camera
+// unplugged mid-stream makes health degraded naming the device, plugged back the daemon
+// tracks again; the pairs stay whole.
+TEST(Pipeline, AV4l2CameraUnpluggedAndPluggedBackIsReportedThenTrackedAgain) {
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+  auto spec = sim::loadScene(std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-60s.toml");
+  ASSERT_TRUE(spec);
+  auto rig = vision::loadRig(spec->rig_path);
+  ASSERT_TRUE(rig);
+  spec->supersample = 1;
+  sim::StereoSimulator s(*spec, *rig);
+  std::vector<std::pair<cv::Mat, cv::Mat>> frames(4);
+  for (int i = 0; i < 4; ++i)
+    s.render(i, frames[static_cast<size_t>(i)].first, frames[static_cast<size_t>(i)].second);
+  test::FakeV4l2 io;
+  io.period_ns = 50'000'000;  // 20 Hz
+  const cv::Size size = rig->left.imageSize();
+  for (const char* dev : {"/dev/video0", "/dev/video1"}) {
+    auto& d = io.add(dev);
+    d.width = size.width;
+    d.height = size.height;
+    const bool left = std::string(dev) == "/dev/video0";
+    d.paint = [&frames, left, size](uint64_t k, uint8_t* data, uint32_t bpl) {
+      const cv::Mat& img = left ? frames[k % 4].first : frames[k % 4].second;
+      for (int y = 0; y < size.height; ++y)
+        std::memcpy(data + static_cast<size_t>(y) * bpl, img.ptr(y),
+                    static_cast<size_t>(size.width));
+    };
+  }
+  drivers::V4l2StereoConfig vc;
+  for (auto* c : {&vc.left, &vc.right}) {
+    c->width = size.width;
+    c->height = size.height;
+  }
+  vc.left.device = "/dev/video0";
+  vc.right.device = "/dev/video1";
+  vc.fps = 20;
+  vc.reopen_ms = 200;
+  DaemonConfig config;
+  config.rig_id = "rig-v4l2";
+  config.fps = 20;
+  config.lock_memory = false;
+  config.capture = config.track = config.publish = {0, -1};
+  auto p = dds::Participant::create(79);
+  ASSERT_TRUE(p) << p.error().message;
+  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                                    dds::Profile::kTransientLocal);
+  ASSERT_TRUE(health);
+  auto source = drivers::makeV4l2Source(io, vc, *rig);
+  ASSERT_TRUE(source->start());
+  Pipeline pipeline(config, std::move(source), *p);
+  ASSERT_TRUE(pipeline.start());
+  const Notifier notifier;
+  std::vector<State> states;
+  std::string degraded_text, trigger_state;
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  uint64_t tracked_unplugged = 0;
+  for (int k = 0; k < 120; ++k) {  // 12 s
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    if (k == 40) io.unplug("/dev/video1");
+    if (k == 70) {
+      tracked_unplugged = pipeline.tracked();
+      io.plug("/dev/video1");
+    }
+    const State st = pipeline.health(notifier);
+    if (states.empty() || states.back() != st) states.push_back(st);
+    while (health->takeOne(&h, std::chrono::milliseconds(0))) {
+      if (h.state == static_cast<uint8_t>(State::kDegraded)) degraded_text = h.last_error;
+      trigger_state = h.trigger_state;
+    }
+    if (k > 90 && st == State::kOk && pipeline.tracked() > tracked_unplugged + 20) break;
+  }
+  pipeline.stop();
+  std::string seq;
+  for (State st : states) seq += std::string(toString(st)) + " ";
+  std::cout << "states: " << seq << "\ndegraded: " << degraded_text
+            << "\ntrigger: " << trigger_state << "\n";
+  EXPECT_EQ(states.back(), State::kOk) << seq;
+  EXPECT_NE(std::find(states.begin(), states.end(), State::kDegraded), states.end()) << seq;
+  EXPECT_NE(degraded_text.find("/dev/video1"), std::string::npos) << degraded_text;
+  EXPECT_GT(pipeline.tracked(), tracked_unplugged + 20);  // tracking resumed
+  EXPECT_NE(trigger_state.find("free-running"), std::string::npos) << trigger_state;
   dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 

@@ -35,6 +35,7 @@ int main(int argc, char** argv) {
   h.source = const_cast<char*>("sim");
   h.source_state = const_cast<char*>("running");
   h.trigger_state = const_cast<char*>("software");
+  h.recorder_state = const_cast<char*>("off");
   h.last_error = const_cast<char*>("");
   h.frames = 1234;
   if (!health->write(&h)) return 1;

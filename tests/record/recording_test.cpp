@@ -12,7 +12,9 @@
 #include <fstream>
 #include <opencv2/calib3d.hpp>
 #include <random>
+#include <thread>
 
+#include "pulsetrack/record/live_recorder.hpp"
 #include "pulsetrack/record/track_csv.hpp"
 #include "test_util.hpp"
 
@@ -301,6 +303,116 @@ TEST(TrackCsv, BadFilesAreNamedWithTheLine) {
   ASSERT_FALSE(r);
   EXPECT_NE(r.error().message.find("n.csv:2: field 't' is not a number: 'abc'"), std::string::npos)
       << r.error().message;
+}
+
+// The live recorder: every offered pair on disk, in order, bit-exact.
+TEST(LiveRecorder, RecordsTheLiveStreamLosslessly) {
+  test::TempDir tmp;
+  const cv::Size size(64, 48);
+  LiveRecorderOptions o;
+  o.dir = tmp.path() / "live";
+  o.manifest = manifest(size);
+  auto rec = LiveRecorder::start(o, smallRig(size));
+  ASSERT_TRUE(rec) << rec.error().message;
+  std::vector<std::pair<cv::Mat, cv::Mat>> sent;
+  for (uint64_t i = 0; i < 50; ++i) {
+    sent.emplace_back(noiseImage(size, static_cast<int>(2 * i)),
+                      noiseImage(size, static_cast<int>(2 * i + 1)));
+    ASSERT_TRUE((*rec)->offer(
+        {i, 1000 + i, static_cast<int64_t>(i) * 100, static_cast<int64_t>(i) * 100 + 5, 0},
+        sent.back().first, sent.back().second));
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  (*rec)->stop();
+  const RecorderStatus st = (*rec)->status();
+  EXPECT_EQ(st.written, 50U);
+  EXPECT_EQ(st.thinned, 0U);
+  EXPECT_TRUE(st.error.empty());
+  auto r = Reader::open(o.dir);
+  ASSERT_TRUE(r) << r.error().message;
+  ASSERT_EQ(r->size(), 50U);
+  cv::Mat l, rr;
+  for (size_t i = 0; i < 50; ++i) {
+    ASSERT_TRUE(r->read(i, l, rr));
+    EXPECT_EQ(cv::norm(l, sent[i].first, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(rr, sent[i].second, cv::NORM_INF), 0.0);
+    EXPECT_EQ(r->meta(i).trigger_seq, 1000 + i);
+    EXPECT_EQ(r->meta(i).t_right_ns, static_cast<int64_t>(i) * 100 + 5);
+  }
+}
+
+// A disk slower than the stream: capture never waits, the recording thins, what is written is
+// in order and readable.
+TEST(LiveRecorder, ASlowDiskThinsTheRecordingAndCaptureNeverWaits) {
+  test::TempDir tmp;
+  const cv::Size size(640, 480);
+  LiveRecorderOptions o;
+  o.dir = tmp.path() / "live";
+  o.manifest = manifest(size);
+  o.slots = 2;
+  o.zstd_level = 19;  // slow on purpose
+  auto rec = LiveRecorder::start(o, smallRig(size));
+  ASSERT_TRUE(rec) << rec.error().message;
+  const cv::Mat a = noiseImage(size, 1), b = noiseImage(size, 2);
+  int taken = 0;
+  const auto t0 = std::chrono::steady_clock::now();
+  for (uint64_t i = 0; i < 200; ++i) taken += (*rec)->offer({i, i, 0, 0, 0}, a, b) ? 1 : 0;
+  const double offer_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  (*rec)->stop();
+  const RecorderStatus st = (*rec)->status();
+  std::cout << "200 offers in " << offer_s * 1e3 << " ms: " << st.written << " written, "
+            << st.thinned << " thinned\n";
+  EXPECT_GT(st.thinned, 100U);
+  EXPECT_EQ(st.written + st.thinned, 200U);
+  EXPECT_EQ(static_cast<uint64_t>(taken), st.written);
+  auto r = Reader::open(o.dir);
+  ASSERT_TRUE(r);
+  ASSERT_EQ(r->size(), st.written);
+  for (size_t i = 1; i < r->size(); ++i) EXPECT_GT(r->meta(i).frame, r->meta(i - 1).frame);
+}
+
+// A disk that fills (the kernel's file-size limit in a child process): the recording stops
+// cleanly with the error, offers are refused, the file reads back to its last frame.
+TEST(LiveRecorder, AFullDiskStopsTheRecordingCleanly) {
+  test::TempDir tmp;
+  const cv::Size size(64, 48);
+  const auto dir = tmp.path() / "live";
+  const pid_t pid = ::fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    ::signal(SIGXFSZ, SIG_IGN);
+    LiveRecorderOptions o;
+    o.dir = dir;
+    o.manifest = manifest(size);
+    o.zstd_level = 0;
+    auto rec = LiveRecorder::start(o, smallRig(size));
+    if (!rec) ::_exit(10);
+    rlimit lim{};
+    lim.rlim_cur = lim.rlim_max = 60'000;
+    if (::setrlimit(RLIMIT_FSIZE, &lim) != 0) ::_exit(11);
+    for (uint64_t i = 0; i < 100; ++i) {
+      (void)(*rec)->offer({i, i, 0, 0, 0}, noiseImage(size, 1), noiseImage(size, 2));
+      std::this_thread::sleep_for(std::chrono::milliseconds(3));
+    }
+    const RecorderStatus st = (*rec)->status();
+    const bool refused =
+        !(*rec)->offer({100, 100, 0, 0, 0}, noiseImage(size, 1), noiseImage(size, 2));
+    (*rec)->stop();
+    if (!st.stopped || st.error.find("not recorded") == std::string::npos || !refused) ::_exit(12);
+    ::_exit(static_cast<int>(std::min<uint64_t>(st.written, 90)) + 1);
+  }
+  int status = 0;
+  ASSERT_EQ(::waitpid(pid, &status, 0), pid);
+  ASSERT_TRUE(WIFEXITED(status));
+  const int code = WEXITSTATUS(status);
+  ASSERT_GT(code, 1) << "child failed with " << code;
+  ASSERT_LT(code, 10 + 1) << "child failed with " << code;  // ~6 KB per frame: 8 or 9 fit
+  auto r = Reader::open(dir);
+  ASSERT_TRUE(r) << r.error().message;
+  EXPECT_EQ(r->size(), static_cast<size_t>(code - 1));
+  cv::Mat l, rr;
+  for (size_t i = 0; i < r->size(); ++i) EXPECT_TRUE(r->read(i, l, rr));
 }
 
 }  // namespace

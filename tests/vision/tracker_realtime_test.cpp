@@ -1,6 +1,7 @@
-// The per-frame step allocates nothing, locks nothing and throws nothing: every heap entry point
+// The per-frame path allocates nothing, locks nothing and throws nothing: every heap entry point
 // (malloc, calloc, realloc, memalign, posix_memalign, aligned_alloc, operator new) and
-// pthread_mutex_lock is interposed in this executable and counted while track() runs.
+// pthread_mutex_lock is interposed in this executable and counted, on the calling thread only,
+// while track(), the frame pairer and the live recorder's offer() run.
 // Its own executable, built without sanitizers (they own these symbols).
 
 #include <dlfcn.h>
@@ -11,17 +12,19 @@
 #include <cstdlib>
 #include <new>
 
+#include "pulsetrack/drivers/pairing.hpp"
+#include "pulsetrack/record/live_recorder.hpp"
 #include "pulsetrack/sim/paper_rig.hpp"
 #include "pulsetrack/sim/scene.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
+#include "test_util.hpp"
 
 namespace {
-std::atomic<bool> g_counting{false};
+thread_local bool g_counting = false;  // this thread's calls only (the recorder's writer allocates)
 std::atomic<long> g_allocations{0};
 std::atomic<long> g_locks{0};
 void count() {
-  if (g_counting.load(std::memory_order_relaxed))
-    g_allocations.fetch_add(1, std::memory_order_relaxed);
+  if (g_counting) g_allocations.fetch_add(1, std::memory_order_relaxed);
 }
 }  // namespace
 
@@ -64,7 +67,7 @@ void free(void* p) { __libc_free(p); }
 int pthread_mutex_lock(pthread_mutex_t* m) {
   using Fn = int (*)(pthread_mutex_t*);
   static Fn real = reinterpret_cast<Fn>(dlsym(RTLD_NEXT, "pthread_mutex_lock"));
-  if (g_counting.load(std::memory_order_relaxed)) g_locks.fetch_add(1, std::memory_order_relaxed);
+  if (g_counting) g_locks.fetch_add(1, std::memory_order_relaxed);
   return real(m);
 }
 }
@@ -132,6 +135,43 @@ TEST(TrackerRealtime, TrackAllocatesNothingAndLocksNothing) {
   EXPECT_EQ(g_allocations.load(), 0) << "heap allocations in 11 calls of track()";
   EXPECT_EQ(g_locks.load(), 0) << "mutex locks in 11 calls of track()";
   EXPECT_GT(tracker.okCount(), 10);
+}
+
+TEST(TrackerRealtime, PairingAndTheRecordersOfferAllocateNothingAndLockNothing) {
+  drivers::FramePairer pairer({33'333'333, 0});
+  test::TempDir tmp;
+  const cv::Size size(640, 480);
+  record::LiveRecorderOptions o;
+  o.dir = tmp.path() / "rec";
+  o.manifest.source = "test";
+  o.manifest.rig_id = "rig";
+  o.manifest.width = size.width;
+  o.manifest.height = size.height;
+  o.manifest.nominal_fps = 30;
+  o.slots = 8;
+  vision::StereoRig rig = sim::paperRig();
+  auto rec = record::LiveRecorder::start(o, rig);
+  ASSERT_TRUE(rec) << rec.error().message;
+  cv::Mat l(size, CV_8UC1, cv::Scalar(10)), r(size, CV_8UC1, cv::Scalar(20));
+  (void)(*rec)->offer({0, 0, 0, 0, 0}, l, r);  // warm-up
+  g_allocations = 0;
+  g_locks = 0;
+  g_counting = true;
+  int paired = 0, offered = 0;
+  for (int k = 1; k < 200; ++k) {
+    const int64_t t = int64_t{k} * 33'333'333;
+    (void)pairer.offer(0, {static_cast<uint64_t>(k), t, k});
+    if (k % 9 != 0)
+      paired += pairer.offer(1, {static_cast<uint64_t>(k), t + 5000, k}).paired ? 1 : 0;
+    offered +=
+        (*rec)->offer({static_cast<uint64_t>(k), static_cast<uint64_t>(k), t, t, 0}, l, r) ? 1 : 0;
+  }
+  g_counting = false;
+  (*rec)->stop();
+  EXPECT_EQ(g_allocations.load(), 0) << "heap allocations in 199 offers";
+  EXPECT_EQ(g_locks.load(), 0) << "mutex locks in 199 offers";
+  EXPECT_GT(paired, 150);
+  EXPECT_GT(offered, 0);
 }
 
 }  // namespace

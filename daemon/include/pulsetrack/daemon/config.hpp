@@ -5,13 +5,14 @@
 #include <string>
 
 #include "pulsetrack/drivers/source.hpp"
+#include "pulsetrack/drivers/v4l2.hpp"
 #include "pulsetrack/rt/thread_policy.hpp"
 #include "pulsetrack/vision/error.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
 
 namespace pulsetrack::daemon {
 
-enum class SourceKind { kSim, kReplay };
+enum class SourceKind { kSim, kReplay, kV4l2, kLibcamera };
 enum class Pace { kRealtime, kFast, kRate };
 
 struct DaemonConfig {
@@ -25,6 +26,19 @@ struct DaemonConfig {
   bool loop = true;
   bool preload = false;
   drivers::SimFaults sim_faults;  // [source.faults]
+  // v4l2: the two cameras ([source.left], [source.right]) and the rig's calibration.
+  drivers::V4l2CameraConfig left_camera, right_camera;
+  std::string left_libcamera_id, right_libcamera_id;  // libcamera: the cameras' ids
+  std::filesystem::path rig;
+  // [trigger]: the HID trigger box, or none (free-running cameras: a health warning).
+  bool trigger_box = false;
+  uint16_t trigger_vendor = 0, trigger_product = 0;
+  std::string trigger_serial;
+  int trigger_pulse_us = 100;
+  // [recorder]: lossless recording of the live stream, off the real-time path.
+  bool record = false;
+  std::filesystem::path record_dir;  // a new folder per run inside it
+  int record_slots = 32;
   vision::Roi roi{{483, 339, 400, 340}, {476, 344, 400, 340}};
   double depth_tolerance_mm = 20.0;
   vision::TrackerConfig tracker;

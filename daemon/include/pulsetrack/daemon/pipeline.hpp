@@ -19,6 +19,7 @@
 #include "pulsetrack/daemon/notify.hpp"
 #include "pulsetrack/dds/dds.hpp"
 #include "pulsetrack/drivers/source.hpp"
+#include "pulsetrack/record/live_recorder.hpp"
 #include "pulsetrack/rt/heartbeat.hpp"
 #include "pulsetrack/rt/latency_histogram.hpp"
 #include "pulsetrack/rt/latest_slot.hpp"
@@ -41,13 +42,17 @@ struct TrackResult {
   bool redetected = false;  // the features are new: the deformation's reference moves
 };
 
+// A recording's folder name: RIG-YYYYmmdd-HHMMSS (UTC).
+std::string recordingName(const std::string& rig_id);
+
 enum class State : uint8_t { kStarting = 0, kOk = 1, kDegraded = 2, kFault = 3 };
 const char* toString(State s);
 
 class Pipeline {
  public:
+  // `recorder` (optional, not owned) receives every captured pair, off the real-time path.
   Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSource> source,
-           const dds::Participant& participant);
+           const dds::Participant& participant, record::LiveRecorder* recorder = nullptr);
   ~Pipeline();
   Pipeline(const Pipeline&) = delete;
   Pipeline& operator=(const Pipeline&) = delete;
@@ -82,6 +87,8 @@ class Pipeline {
 
   DaemonConfig config_;
   std::unique_ptr<drivers::CameraSource> source_;
+  record::LiveRecorder* recorder_;
+  uint64_t recorded_ = UINT64_MAX;  // capture thread: the trigger number of the recording's frame 0
   const dds::Participant& participant_;
   dds::Writer features_writer_, deformation_writer_, health_writer_;
   rt::LatestSlot<Frame> frames_;

@@ -1,0 +1,111 @@
+#pragma once
+// V4L2 cameras: streaming I/O with mmap buffers, as the kernel documents it
+// (https://docs.kernel.org/userspace-api/media/v4l/mmap.html): QUERYCAP, S_FMT (GREY, Y16 or
+// YUYV, converted to 8-bit grey), exposure / gain / trigger controls, REQBUFS + QUERYBUF + mmap,
+// QBUF all, STREAMON; then poll, DQBUF (monotonic timestamps, sequence numbers), QBUF again.
+//
+// Every system call goes through V4l2Io, the seam the tests replace with an emulation of the
+// kernel's streaming state machine (EAGAIN, ENODEV mid-stream, sequence gaps) and which is the
+// plain syscall on a board.
+
+#include <poll.h>
+#include <sys/types.h>
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "pulsetrack/drivers/pairing.hpp"
+#include "pulsetrack/drivers/source.hpp"
+
+namespace pulsetrack::drivers {
+
+// The system calls the driver makes; -1 and errno on failure, as the syscalls.
+class V4l2Io {
+ public:
+  virtual ~V4l2Io() = default;
+  virtual int open(const char* path, int flags) = 0;
+  virtual int close(int fd) = 0;
+  virtual int ioctl(int fd, unsigned long request, void* arg) = 0;
+  virtual void* mmap(size_t length, int fd, off_t offset) = 0;  // PROT_READ|WRITE, MAP_SHARED
+  virtual int munmap(void* addr, size_t length) = 0;
+  virtual int poll(pollfd* fds, nfds_t n, int timeout_ms) = 0;
+};
+// The real system calls.
+V4l2Io& systemV4l2Io();
+
+struct V4l2CameraConfig {
+  std::string device = "/dev/video0";
+  int width = 1360, height = 1024;
+  std::string pixel_format = "GREY";  // GREY | Y16 | YUYV
+  int buffers = 6;
+  std::optional<int> exposure_us;  // V4L2_CID_EXPOSURE_ABSOLUTE (in 100 us units)
+  std::optional<int> gain;         // V4L2_CID_GAIN
+  // External trigger: V4L2 has no standard control; cameras expose a vendor control. Its id
+  // and the value that selects the external trigger (0: leave the camera as it is).
+  uint32_t trigger_control = 0;
+  int trigger_value = 1;
+};
+
+// One camera. Not thread-safe: the capture stage owns it.
+class V4l2Camera {
+ public:
+  V4l2Camera(V4l2Io& io, V4l2CameraConfig config);
+  ~V4l2Camera();
+  V4l2Camera(const V4l2Camera&) = delete;
+  V4l2Camera& operator=(const V4l2Camera&) = delete;
+
+  // Opens, configures and starts streaming; fails naming the device and the step.
+  vision::Result<void> open();
+  void close();
+  [[nodiscard]] bool isOpen() const { return fd_ >= 0; }
+  [[nodiscard]] int fd() const { return fd_; }
+  [[nodiscard]] const std::string& device() const { return config_.device; }
+
+  enum class Dequeue { kFrame, kAgain, kGone, kError };
+  // One filled buffer, without waiting (call after poll says readable). The buffer stays the
+  // caller's until requeue(index).
+  Dequeue dequeue(int& index, CameraStamp& stamp);
+  // The buffer's image as 8-bit grey into `out` (sized at open: width x height CV_8UC1).
+  void convert(int index, cv::Mat& out) const;
+  bool requeue(int index);
+  [[nodiscard]] const std::string& lastError() const { return error_; }
+
+ private:
+  vision::Result<void> fail(const std::string& step);
+  bool setControl(uint32_t id, int value);
+
+  V4l2Io& io_;
+  V4l2CameraConfig config_;
+  uint32_t fourcc_ = 0;
+  int fd_ = -1;
+  uint32_t bytes_per_line_ = 0;
+  struct Buffer {
+    void* data = nullptr;
+    size_t length = 0;
+  };
+  std::vector<Buffer> buffers_;
+  bool streaming_ = false;
+  std::string error_;
+};
+
+// Two V4L2 cameras triggered together, behind the daemon's source interface. Frames are paired
+// by timestamp (FramePairer); with a trigger box the pairs carry the box's pulse numbers (see
+// trigger_box.hpp); without one the source is free-running and says so in triggerState().
+// A camera that goes away (ENODEV, or no frame within the timeout) is a fault; it is reopened
+// every `reopen_ms` until it answers, and tracking resumes.
+struct V4l2StereoConfig {
+  V4l2CameraConfig left, right;
+  double fps = 30.0;  // the trigger's rate: pairing tolerance, frame timeout
+  int reopen_ms = 500;
+};
+
+class TriggerBox;  // trigger_box.hpp
+
+std::unique_ptr<CameraSource> makeV4l2Source(V4l2Io& io, const V4l2StereoConfig& config,
+                                             vision::StereoRig rig, TriggerBox* trigger = nullptr);
+
+}  // namespace pulsetrack::drivers
