@@ -424,7 +424,7 @@ State Pipeline::health(const Notifier& notifier) {
   h.stages._release = false;
   h.fps = static_cast<float>(fps);
   h.frames = tracked();
-  h.drops = frames_.drops() + results_.drops();
+  h.drops = frames_.drops() + results_.drops() + sc.overruns;
   h.deadline_misses = deadline_misses_.load();
   h.missing_triggers = sc.missing_triggers;
   h.unpaired = sc.unpaired;

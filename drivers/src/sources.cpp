@@ -41,16 +41,14 @@ class SimSource final : public CameraSource {
     const int64_t until = rt::monotonicNs() + std::chrono::nanoseconds(timeout).count();
     const auto count = static_cast<uint64_t>(sim_.frameCount());
     for (;;) {
-      int64_t due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
+      const int64_t due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
       const int64_t now = rt::monotonicNs();
       if (due > until) return Next::kTimeout;
-      if (due < now - period_ns_) {
-        // Rendering took longer than a period: those triggers' frames were never taken.
-        index_ += static_cast<uint64_t>((now - due) / period_ns_);
-        due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
-      }
       if (!loop_ && index_ >= count) return Next::kEnd;
-      sleepUntil(due);
+      // Rendering took longer than a period: the cameras exposed on every pulse, but a newer
+      // pair is already due, so this one is not taken (newest wins, counted as an overrun).
+      const bool late = due + period_ns_ <= now;
+      if (!late) sleepUntil(due);
       const uint64_t k = index_++;
       if (every(faults_.missing_trigger_every, k)) continue;  // the pulse never fired
       const int slot = static_cast<int>(k % count);           // the scene frame it shows
@@ -62,13 +60,18 @@ class SimSource final : public CameraSource {
       if (every(faults_.right_miss_every, k)) continue;
       const PairEvents ev = pairer_.offer(1, {seq_[1]++, due, slot});
       if (!ev.paired) continue;
+      if (late) {
+        ++overruns_;
+        continue;
+      }
       sim_.render(ev.left.slot, frame.left, frame.right);
       frame.trigger_seq = ev.trigger_seq;
       frame.t_left_ns = ev.left.t_ns;
       frame.t_right_ns = ev.right.t_ns;
       ++frames_;
       const PairerCounters& p = pairer_.counters();
-      shared_.store({frames_, p.missing_triggers, p.unpaired, p.dropped[0] + p.dropped[1]});
+      shared_.store(
+          {frames_, p.missing_triggers, p.unpaired, p.dropped[0] + p.dropped[1], overruns_});
       return Next::kFrame;
     }
   }
@@ -89,7 +92,7 @@ class SimSource final : public CameraSource {
   FramePairer pairer_;
   int64_t t0_ns_ = 0;
   uint64_t index_ = 0;
-  uint64_t frames_ = 0;
+  uint64_t frames_ = 0, overruns_ = 0;
   std::array<uint64_t, 2> seq_{};
   SharedCounters shared_;
 };

@@ -32,6 +32,7 @@ struct SourceCounters {
   uint64_t missing_triggers = 0;  // trigger periods with a frame from neither camera
   uint64_t unpaired = 0;          // frames whose partner from the other camera never came
   uint64_t dropped = 0;           // gaps in a camera's own frame counter (its driver dropped)
+  uint64_t overruns = 0;          // whole pairs not taken: a newer one was ready (newest wins)
 };
 
 // Counters a source updates on its capture thread and health reads on another.
@@ -42,14 +43,16 @@ class SharedCounters {
     missing_.store(c.missing_triggers, std::memory_order_relaxed);
     unpaired_.store(c.unpaired, std::memory_order_relaxed);
     dropped_.store(c.dropped, std::memory_order_relaxed);
+    overruns_.store(c.overruns, std::memory_order_relaxed);
   }
   [[nodiscard]] SourceCounters load() const {
     return {frames_.load(std::memory_order_relaxed), missing_.load(std::memory_order_relaxed),
-            unpaired_.load(std::memory_order_relaxed), dropped_.load(std::memory_order_relaxed)};
+            unpaired_.load(std::memory_order_relaxed), dropped_.load(std::memory_order_relaxed),
+            overruns_.load(std::memory_order_relaxed)};
   }
 
  private:
-  std::atomic<uint64_t> frames_{0}, missing_{0}, unpaired_{0}, dropped_{0};
+  std::atomic<uint64_t> frames_{0}, missing_{0}, unpaired_{0}, dropped_{0}, overruns_{0};
 };
 
 class CameraSource {
@@ -77,8 +80,8 @@ struct SimFaults {
 };
 
 // The simulator live: a software trigger at `fps` (absolute deadlines on CLOCK_MONOTONIC).
-// Each camera's frames go through the FramePairer as a driver's would; a trigger that passes
-// while the previous pair is still rendering gives no frame (counted as missing).
+// Each camera's frames go through the FramePairer as a driver's would; a pair whose trigger
+// passed while the previous pair was still rendering is not taken (newest wins: an overrun).
 std::unique_ptr<CameraSource> makeSimSource(const sim::SceneSpec& scene,
                                             const vision::StereoRig& rig, double fps, bool loop,
                                             const SimFaults& faults = {});
