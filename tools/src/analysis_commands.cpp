@@ -21,7 +21,7 @@ int commandError(const char* command, const std::string& message) {
 namespace {
 
 struct ValidateArgs {
-  std::string recording, markers, divots, digitization, protocol, registration, out;
+  std::string scene, recording, markers, divots, digitization, protocol, registration, out;
   double depth = 20.0;
   double rotation_scale = 10.0;
   bool quiet = false;
@@ -30,6 +30,11 @@ struct ValidateArgs {
 int runValidate(const ValidateArgs& a) {
   analysis::ValidationInputs in;
   in.recording = a.recording;
+  if (!a.scene.empty()) {
+    // A simulator scene: rendered first into OUT/recording, then validated like a real session.
+    in.recording = std::filesystem::path(a.out) / "recording";
+    if (const int rc = simulateScene(a.scene, in.recording.string(), a.quiet); rc != 0) return rc;
+  }
   in.markers = a.markers;
   in.divots = a.divots;
   in.digitization = a.digitization;
@@ -53,7 +58,9 @@ int runValidate(const ValidateArgs& a) {
   fmt::print("{}", analysis::formatValidation(*r));
   auto files = analysis::writeValidationReport(
       *r, a.out,
-      fmt::format("Validation of {}", std::filesystem::path(a.recording).filename().string()));
+      fmt::format("Validation of {}", a.scene.empty()
+                                          ? std::filesystem::path(a.recording).filename().string()
+                                          : std::filesystem::path(a.scene).stem().string()));
   if (!files) return commandError("validate", files.error().message);
   fmt::print("report: {}\n", (std::filesystem::path(a.out) / "report.html").string());
   return 0;
@@ -89,9 +96,16 @@ CommandRunner addValidateCommand(CLI::App& app) {
       "The paper's validation (sections 4-5) of a plate recording against the reference "
       "tracker: O_T_C registration and Table II, per-frame errors, Kruskal-Wallis across sets and "
       "speeds, Figs. 7-8, an HTML report (docs/validation.md).");
-  cmd->add_option("--recording", args->recording, "Plate recording folder")
-      ->required()
-      ->check(CLI::ExistingDirectory);
+  auto* rec = cmd->add_option("--recording", args->recording, "Plate recording folder")
+                  ->check(CLI::ExistingDirectory);
+  auto* scene = cmd->add_option("--scene", args->scene,
+                                "Or a simulator plate scene (config/scenes/plate-*.toml), rendered "
+                                "into OUT/recording first")
+                    ->check(CLI::ExistingFile);
+  rec->excludes(scene);
+  cmd->callback([rec, scene] {
+    if (rec->count() + scene->count() == 0) throw CLI::RequiredError("--recording or --scene");
+  });
   cmd->add_option(
       "--markers", args->markers,
       "Reference tracker's markers' poses per frame (default RECORDING/tracker/markers.csv)");

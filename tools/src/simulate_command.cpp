@@ -137,6 +137,14 @@ int runEvaluate(const EvaluateArgs& a) {
 
 }  // namespace
 
+int simulateScene(const std::string& scene, const std::string& out, bool quiet) {
+  SimulateArgs a;
+  a.scene = scene;
+  a.out = out;
+  a.quiet = quiet;
+  return runSimulate(a);
+}
+
 CommandRunner addSimulateCommand(CLI::App& app) {
   auto args = std::make_shared<SimulateArgs>();
   CLI::App* cmd = app.add_subcommand("simulate",

@@ -21,6 +21,9 @@ CommandRunner addCtlCommand(CLI::App& app);
 CommandRunner addValidateCommand(CLI::App& app);
 CommandRunner addAnalyzeCommand(CLI::App& app);
 
+// Renders a scene file into a recording folder as `pulsetrack simulate` does; 0 on success.
+int simulateScene(const std::string& scene, const std::string& out, bool quiet);
+
 // "pulsetrack COMMAND: error: MESSAGE" on stderr; returns 1, the failure exit code.
 int commandError(const char* command, const std::string& message);
 
