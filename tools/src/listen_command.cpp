@@ -6,6 +6,7 @@
 #include <chrono>
 #include <csignal>
 #include <memory>
+#include <string_view>
 
 #include "pulsetrack/dds/dds.hpp"
 #include "pulsetrack/tools/commands.hpp"
@@ -69,6 +70,8 @@ int runListen(const ListenArgs& a) {
           h.rig_id, stateName(h.state), h.fps, h.frames, h.drops, h.deadline_misses,
           h.missing_triggers, h.unpaired, h.source, h.trigger_state,
           h.last_error[0] != 0 ? fmt::format(" ({})", h.last_error) : "");
+      if (h.recorder_state != nullptr && std::string_view(h.recorder_state) != "off")
+        fmt::print("        recorder {}\n", h.recorder_state);
       for (uint32_t i = 0; i < h.stages._length; ++i) {
         const auto& s = h.stages._buffer[i];
         fmt::print("        {:8} p50 {} us, p99 {} us, max {} us\n", s.stage, s.p50_us, s.p99_us,
