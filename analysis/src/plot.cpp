@@ -114,12 +114,18 @@ void drawAxes(cv::Mat& img, const cv::Rect& cell, const Axes& ax) {
 
   cv::Mat clip = img(plot);
   const cv::Point off(-plot.x, -plot.y);
-  for (const Annotation& a : ax.annotations) {
+  for (size_t k = 0; k < ax.annotations.size(); ++k) {
+    const Annotation& a = ax.annotations[k];
     const int x = px(a.x);
     for (int y = plot.y; y < plot.y + plot.height; y += 8)
       cv::line(img, {x, y}, {x, std::min(y + 4, plot.y + plot.height)}, cv::Scalar(120, 120, 120),
                1);
-    text(img, a.text, {x + 3, plot.y + 12}, 0.36, 0, cv::Scalar(60, 60, 60));
+    // Staggered, so that close peaks' labels do not overwrite each other.
+    int base = 0;
+    const int w = cv::getTextSize(a.text, kFont, 0.36, 1, &base).width;
+    const bool left_of_line = x + 3 + w > plot.x + plot.width;  // near the right edge
+    text(img, a.text, {left_of_line ? x - 3 : x + 3, plot.y + 12 + static_cast<int>(k % 6) * 13},
+         0.36, left_of_line ? 2 : 0, cv::Scalar(60, 60, 60));
   }
   for (const LineSeries& l : ax.lines) {
     std::vector<cv::Point> pts;

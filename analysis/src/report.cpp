@@ -319,8 +319,8 @@ vision::Result<std::vector<std::filesystem::path>> writeMotionReport(
     right.lines.push_back({m.frequency_hz, m.amplitude_mm, cv::Scalar(40, 40, 200), "", 1});
     for (const SpectralPeak& p : m.peaks) {
       if (!p.name.empty() && p.frequency_hz <= right.xmax)
-        right.annotations.push_back(
-            {p.frequency_hz, fmt::format("{} {:.2f} Hz", p.name, p.frequency_hz)});
+        right.annotations.push_back({p.frequency_hz, fmt::format("{} {:.2f} Hz, {:.3f} mm", p.name,
+                                                                 p.frequency_hz, p.amplitude_mm)});
     }
     page += "<h2>" + html(acq[i].name) + "</h2>\n<pre>" + html(formatMotion(acq[i])) + "</pre>\n" +
             htmlTable({"Hz", "amplitude (mm)", "component"}, rows);
