@@ -12,6 +12,7 @@
 #include <cstring>
 #include <mutex>
 
+#include "paired_frames.hpp"
 #include "pulsetrack/drivers/pairing.hpp"
 #include "pulsetrack/drivers/trigger_box.hpp"
 #include "pulsetrack/rt/heartbeat.hpp"
@@ -51,9 +52,7 @@ class LibcameraStereoSource final : public CameraSource {
   LibcameraStereoSource(const LibcameraStereoConfig& c, vision::StereoRig rig, TriggerBox* trigger)
       : config_(c),
         rig_(std::move(rig)),
-        trigger_(trigger),
-        period_ns_(static_cast<int64_t>(1e9 / c.fps)),
-        pairer_({period_ns_, 0}),
+        pairs_(static_cast<int64_t>(1e9 / c.fps), trigger),
         completed_(256) {
     event_fd_ = eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
   }
@@ -97,24 +96,15 @@ class LibcameraStereoSource final : public CameraSource {
         s.seq = fb->metadata().sequence;
         const auto ts = r->metadata().get(lc::controls::SensorTimestamp);
         s.t_ns = ts ? *ts : static_cast<int64_t>(fb->metadata().timestamp);
-        s.slot = c.camera * kSlotsPerCamera + static_cast<int>(r->cookie());
-        const PairEvents ev = pairer_.offer(c.camera, s);
+        s.slot = PairedFrames::slot(c.camera, static_cast<int>(r->cookie()));
+        const PairEvents ev = pairs_.offer(c.camera, s);
         for (int k = 0; k < ev.n_released; ++k) requeue(ev.released[static_cast<size_t>(k)]);
         if (!ev.paired) continue;
         copyOut(ev.left.slot, frame.left);
         copyOut(ev.right.slot, frame.right);
         requeue(ev.left.slot);
         requeue(ev.right.slot);
-        frame.trigger_seq = ev.trigger_seq;
-        if (trigger_ != nullptr) {
-          if (const auto seq = trigger_->pulseNear(ev.left.t_ns, period_ns_ / 4))
-            frame.trigger_seq = *seq;
-        }
-        frame.t_left_ns = ev.left.t_ns;
-        frame.t_right_ns = ev.right.t_ns;
-        ++frames_;
-        const PairerCounters& p = pairer_.counters();
-        shared_.store({frames_, p.missing_triggers, p.unpaired, p.dropped[0] + p.dropped[1]});
+        pairs_.emit(ev, frame);
         return Next::kFrame;
       }
       if (now >= deadline) return Next::kTimeout;
@@ -127,18 +117,10 @@ class LibcameraStereoSource final : public CameraSource {
 
   void stop() override { teardown(); }
   std::string lastFault() const override { return fault_; }
-  SourceCounters counters() const override { return shared_.load(); }
-  std::string triggerState() const override {
-    if (trigger_ == nullptr)
-      return fmt::format(
-          "free-running at {:g} Hz: no trigger box, the two cameras are only "
-          "software-synchronized (pairs matched by timestamp)",
-          config_.fps);
-    return trigger_->state();
-  }
+  SourceCounters counters() const override { return pairs_.counters(); }
+  std::string triggerState() const override { return pairs_.triggerState(config_.fps); }
 
  private:
-  static constexpr int kSlotsPerCamera = 1000;
   struct Completed {
     lc::Request* request = nullptr;
     int camera = 0;
@@ -225,7 +207,7 @@ class LibcameraStereoSource final : public CameraSource {
         return ok;
       }
     }
-    (void)pairer_.reset();
+    (void)pairs_.reset();
     running_ = true;
     return {};
   }
@@ -263,16 +245,16 @@ class LibcameraStereoSource final : public CameraSource {
   void onDisconnected() { disconnected_.store(true); }
 
   void requeue(int slot) {
-    Cam& c = cams_[static_cast<size_t>(slot / kSlotsPerCamera)];
-    const auto i = static_cast<size_t>(slot % kSlotsPerCamera);
+    Cam& c = cams_[static_cast<size_t>(PairedFrames::camera(slot))];
+    const auto i = static_cast<size_t>(PairedFrames::index(slot));
     if (!c.camera || i >= c.requests.size()) return;
     c.requests[i]->reuse(lc::Request::ReuseBuffers);
     (void)c.camera->queueRequest(c.requests[i].get());
   }
 
   void copyOut(int slot, cv::Mat& out) const {
-    const Cam& c = cams_[static_cast<size_t>(slot / kSlotsPerCamera)];
-    const Mapped& m = c.maps[static_cast<size_t>(slot % kSlotsPerCamera)];
+    const Cam& c = cams_[static_cast<size_t>(PairedFrames::camera(slot))];
+    const Mapped& m = c.maps[static_cast<size_t>(PairedFrames::index(slot))];
     for (int y = 0; y < config_.height; ++y)
       std::memcpy(out.ptr<uint8_t>(y), m.data + static_cast<size_t>(y) * m.stride,
                   static_cast<size_t>(config_.width));
@@ -280,18 +262,14 @@ class LibcameraStereoSource final : public CameraSource {
 
   LibcameraStereoConfig config_;
   vision::StereoRig rig_;
-  TriggerBox* trigger_;
-  int64_t period_ns_;
-  FramePairer pairer_;
+  PairedFrames pairs_;
   std::array<Cam, 2> cams_;
   atomic_queue::AtomicQueueB2<Completed> completed_;
   int event_fd_ = -1;
   bool running_ = false;
   std::atomic<bool> disconnected_{false};
   int64_t next_reopen_ns_ = 0;
-  uint64_t frames_ = 0;
   std::string fault_;
-  SharedCounters shared_;
 };
 
 }  // namespace

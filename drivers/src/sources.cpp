@@ -3,7 +3,7 @@
 
 #include <array>
 
-#include "pulsetrack/drivers/pairing.hpp"
+#include "paired_frames.hpp"
 #include "pulsetrack/drivers/source.hpp"
 #include "pulsetrack/rt/heartbeat.hpp"
 
@@ -28,13 +28,13 @@ class SimSource final : public CameraSource {
         fps_(fps),
         loop_(loop),
         faults_(faults),
-        pairer_({period_ns_, 0}) {}
+        pairs_(period_ns_, nullptr) {}
   std::string name() const override { return "sim " + sim_.spec().name; }
   const vision::StereoRig& rig() const override { return sim_.rig(); }
   vision::Result<void> start() override {
     t0_ns_ = rt::monotonicNs();
     index_ = 0;
-    pairer_.reset();
+    (void)pairs_.reset();
     return {};
   }
   Next next(StereoFrame& frame, std::chrono::milliseconds timeout) override {
@@ -55,29 +55,23 @@ class SimSource final : public CameraSource {
       if (every(faults_.left_drop_every, k)) {
         ++seq_[0];  // the driver dropped it: a gap in the left counter
       } else {
-        pairer_.offer(0, {seq_[0]++, due, slot});
+        pairs_.offer(0, {seq_[0]++, due, slot});
       }
       if (every(faults_.right_miss_every, k)) continue;
-      const PairEvents ev = pairer_.offer(1, {seq_[1]++, due, slot});
+      const PairEvents ev = pairs_.offer(1, {seq_[1]++, due, slot});
       if (!ev.paired) continue;
       if (late) {
-        ++overruns_;
+        pairs_.overrun();
         continue;
       }
       sim_.render(ev.left.slot, frame.left, frame.right);
-      frame.trigger_seq = ev.trigger_seq;
-      frame.t_left_ns = ev.left.t_ns;
-      frame.t_right_ns = ev.right.t_ns;
-      ++frames_;
-      const PairerCounters& p = pairer_.counters();
-      shared_.store(
-          {frames_, p.missing_triggers, p.unpaired, p.dropped[0] + p.dropped[1], overruns_});
+      pairs_.emit(ev, frame);
       return Next::kFrame;
     }
   }
   void stop() override {}
   std::string lastFault() const override { return {}; }
-  SourceCounters counters() const override { return shared_.load(); }
+  SourceCounters counters() const override { return pairs_.counters(); }
   std::string triggerState() const override { return fmt::format("software {:g} Hz", fps_); }
 
  private:
@@ -89,12 +83,10 @@ class SimSource final : public CameraSource {
   double fps_;
   bool loop_;
   SimFaults faults_;
-  FramePairer pairer_;
+  PairedFrames pairs_;
   int64_t t0_ns_ = 0;
   uint64_t index_ = 0;
-  uint64_t frames_ = 0, overruns_ = 0;
   std::array<uint64_t, 2> seq_{};
-  SharedCounters shared_;
 };
 
 class ReplaySource final : public CameraSource {

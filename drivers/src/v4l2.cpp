@@ -10,6 +10,7 @@
 #include <cerrno>
 #include <cstring>
 
+#include "paired_frames.hpp"
 #include "pulsetrack/drivers/trigger_box.hpp"
 #include "pulsetrack/rt/heartbeat.hpp"
 
@@ -239,10 +240,9 @@ class V4l2StereoSource final : public CameraSource {
       : io_(io),
         config_(c),
         rig_(std::move(rig)),
-        trigger_(trigger),
         cams_{std::make_unique<V4l2Camera>(io, c.left), std::make_unique<V4l2Camera>(io, c.right)},
         period_ns_(static_cast<int64_t>(1e9 / c.fps)),
-        pairer_({period_ns_, 0}) {}
+        pairs_(period_ns_, trigger) {}
 
   std::string name() const override {
     return fmt::format("v4l2 {} + {}", config_.left.device, config_.right.device);
@@ -255,7 +255,7 @@ class V4l2StereoSource final : public CameraSource {
     }
     const int64_t now = rt::monotonicNs();
     last_frame_ns_ = {now, now};
-    pairer_.reset();
+    pairs_.reset();
     return {};
   }
 
@@ -278,10 +278,10 @@ class V4l2StereoSource final : public CameraSource {
         }
         // Frames waiting for a partner: the reopened camera's buffers were queued afresh by
         // open(), the other camera's are given back.
-        const PairEvents dropped = pairer_.reset();
+        const PairEvents dropped = pairs_.reset();
         for (int k = 0; k < dropped.n_released; ++k) {
           const int slot = dropped.released[static_cast<size_t>(k)];
-          if (!reopened[static_cast<size_t>(slot / kSlotsPerCamera)]) giveBack(slot);
+          if (!reopened[static_cast<size_t>(PairedFrames::camera(slot))]) giveBack(slot);
         }
         last_frame_ns_ = {now, now};
       }
@@ -323,24 +323,15 @@ class V4l2StereoSource final : public CameraSource {
           return Next::kFault;
         }
         last_frame_ns_[static_cast<size_t>(c)] = t;
-        stamp.slot = c * kSlotsPerCamera + index;
-        const PairEvents ev = pairer_.offer(c, stamp);
+        stamp.slot = PairedFrames::slot(c, index);
+        const PairEvents ev = pairs_.offer(c, stamp);
         for (int k = 0; k < ev.n_released; ++k) giveBack(ev.released[static_cast<size_t>(k)]);
         if (!ev.paired) continue;
-        cams_[0]->convert(ev.left.slot % kSlotsPerCamera, frame.left);
-        cams_[1]->convert(ev.right.slot % kSlotsPerCamera, frame.right);
+        cams_[0]->convert(PairedFrames::index(ev.left.slot), frame.left);
+        cams_[1]->convert(PairedFrames::index(ev.right.slot), frame.right);
         giveBack(ev.left.slot);
         giveBack(ev.right.slot);
-        frame.trigger_seq = ev.trigger_seq;
-        if (trigger_ != nullptr) {
-          if (const auto seq = trigger_->pulseNear(ev.left.t_ns, period_ns_ / 4))
-            frame.trigger_seq = *seq;
-        }
-        frame.t_left_ns = ev.left.t_ns;
-        frame.t_right_ns = ev.right.t_ns;
-        ++frames_;
-        const PairerCounters& p = pairer_.counters();
-        shared_.store({frames_, p.missing_triggers, p.unpaired, p.dropped[0] + p.dropped[1]});
+        pairs_.emit(ev, frame);
         return Next::kFrame;
       }
     }
@@ -350,35 +341,24 @@ class V4l2StereoSource final : public CameraSource {
     for (auto& cam : cams_) cam->close();
   }
   std::string lastFault() const override { return fault_; }
-  SourceCounters counters() const override { return shared_.load(); }
-  std::string triggerState() const override {
-    if (trigger_ == nullptr)
-      return fmt::format(
-          "free-running at {:g} Hz: no trigger box, the two cameras are only "
-          "software-synchronized (pairs matched by timestamp)",
-          config_.fps);
-    return trigger_->state();
-  }
+  SourceCounters counters() const override { return pairs_.counters(); }
+  std::string triggerState() const override { return pairs_.triggerState(config_.fps); }
 
  private:
-  static constexpr int kSlotsPerCamera = 1000;
   void giveBack(int slot) {
-    V4l2Camera& cam = *cams_[static_cast<size_t>(slot / kSlotsPerCamera)];
-    if (cam.isOpen()) (void)cam.requeue(slot % kSlotsPerCamera);
+    V4l2Camera& cam = *cams_[static_cast<size_t>(PairedFrames::camera(slot))];
+    if (cam.isOpen()) (void)cam.requeue(PairedFrames::index(slot));
   }
 
   V4l2Io& io_;
   V4l2StereoConfig config_;
   vision::StereoRig rig_;
-  TriggerBox* trigger_;
   std::array<std::unique_ptr<V4l2Camera>, 2> cams_;
   int64_t period_ns_;
-  FramePairer pairer_;
+  PairedFrames pairs_;
   std::array<int64_t, 2> last_frame_ns_{};
   int64_t next_reopen_ns_ = 0;
-  uint64_t frames_ = 0;
   std::string fault_;
-  SharedCounters shared_;
 };
 
 }  // namespace

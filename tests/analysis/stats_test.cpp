@@ -93,7 +93,8 @@ std::vector<std::vector<std::vector<double>>> datasets() {
 }
 
 TEST(KruskalWallis, AgreesWithScipyIncludingTies) {
-  if (!haveScipy()) GTEST_SKIP() << "SKIP: /usr/bin/python3 with scipy is not installed";
+  ASSERT_TRUE(haveScipy())
+      << "/usr/bin/python3 with scipy is needed (scripts/bootstrap installs python3-scipy)";
   test::TempDir dir;
   for (const auto& groups : datasets()) {
     auto kw = kruskalWallis(groups);
@@ -108,7 +109,8 @@ TEST(KruskalWallis, AgreesWithScipyIncludingTies) {
 }
 
 TEST(KruskalWallis, DunnBonferroniAgreesWithTheFormulaOnScipyRanks) {
-  if (!haveScipy()) GTEST_SKIP() << "SKIP: /usr/bin/python3 with scipy is not installed";
+  ASSERT_TRUE(haveScipy())
+      << "/usr/bin/python3 with scipy is needed (scripts/bootstrap installs python3-scipy)";
   test::TempDir dir;
   for (const auto& groups : datasets()) {
     const auto pairs = dunnBonferroni(groups);
@@ -122,7 +124,8 @@ TEST(KruskalWallis, DunnBonferroniAgreesWithTheFormulaOnScipyRanks) {
 }
 
 TEST(KruskalWallis, ChiSquareSurvivalAgreesWithScipy) {
-  if (!haveScipy()) GTEST_SKIP() << "SKIP: /usr/bin/python3 with scipy is not installed";
+  ASSERT_TRUE(haveScipy())
+      << "/usr/bin/python3 with scipy is needed (scripts/bootstrap installs python3-scipy)";
   const auto r =
       test::run(std::string(kPython) +
                 " -c 'import scipy.stats as s\nfor k in range(1, 8):\n for x in (0.01, 0.5, 2.0, "

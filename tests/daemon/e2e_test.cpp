@@ -17,6 +17,7 @@
 #include <fstream>
 #include <functional>
 #include <map>
+#include <optional>
 #include <thread>
 
 #include "pulsetrack/dds/dds.hpp"
@@ -94,6 +95,41 @@ struct Daemon {
   }
   Daemon(const Daemon&) = delete;
   Daemon& operator=(const Daemon&) = delete;
+};
+
+// Another process's view of the daemon over DDS: features and health readers on the test's
+// domain, their samples, and the seconds since it subscribed.
+struct Subscriber {
+  std::optional<dds::Participant> participant;
+  std::optional<dds::Reader> features, health;
+  pulsetrack_msgs_msg_dds__Features_ f{};
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  std::chrono::steady_clock::time_point t0 = std::chrono::steady_clock::now();
+
+  explicit Subscriber(uint32_t domain) {
+    setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+    auto p = dds::Participant::create(domain);
+    if (!p) return;
+    participant.emplace(std::move(*p));
+    auto fr =
+        dds::Reader::create(*participant, dds::kFeaturesTopic,
+                            &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
+    auto hr =
+        dds::Reader::create(*participant, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                            dds::Profile::kTransientLocal);
+    if (fr) features.emplace(std::move(*fr));
+    if (hr) health.emplace(std::move(*hr));
+  }
+  ~Subscriber() {
+    dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
+    dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+  }
+  Subscriber(const Subscriber&) = delete;
+  Subscriber& operator=(const Subscriber&) = delete;
+  [[nodiscard]] bool ok() const { return features && health; }
+  [[nodiscard]] double secs() const {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  }
 };
 
 TEST(Daemon, PublishesTrackedFeaturesThatMatchTheGroundTruthAndTalksToSystemd) {
@@ -245,41 +281,30 @@ TEST(Daemon, CheckConfigNamesFileLineOrSaysOk) {
 // faulty trigger), the counts reach health, and so many losses make it degraded, with the reason.
 TEST(Daemon, MissingTriggersAndUnpairedFramesAreCountedNeverPairedWrongly) {
   test::TempDir dir;
-  const uint32_t domain = 78;
+  const uint32_t domain = 81;  // every test has its own domain: ctest runs them in parallel
   Daemon d(dir, domain, {"--run-for", "60"},
            "[source.faults]\nmissing_trigger_every = 5\nleft_drop_every = 7\n"
            "right_miss_every = 11\n");
-  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
-  auto p = dds::Participant::create(domain);
-  ASSERT_TRUE(p);
-  auto features = dds::Reader::create(
-      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
-  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
-                                    dds::Profile::kTransientLocal);
-  ASSERT_TRUE(features && health);
-  const auto t0 = std::chrono::steady_clock::now();
-  const auto secs = [&] {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  };
-  pulsetrack_msgs_msg_dds__Features_ f{};
-  pulsetrack_msgs_msg_dds__Health_ h{};
+  Subscriber sub(domain);
+  ASSERT_TRUE(sub.ok());
+  const auto secs = [&] { return sub.secs(); };
   int samples = 0, faulty = 0, degraded = 0;
   uint64_t missing = 0, unpaired = 0;
   std::string trigger_state, reason;
   while (secs() < 40.0 && (samples < 20 || degraded < 2)) {
     d.drain(secs());
-    if (features->takeOne(&f, std::chrono::milliseconds(50))) {
+    if (sub.features->takeOne(&sub.f, std::chrono::milliseconds(50))) {
       ++samples;
-      const uint64_t k = f.frame;
+      const uint64_t k = sub.f.frame;
       if (k % 5 == 4 || k % 7 == 6 || k % 11 == 10) ++faulty;
     }
-    while (health->takeOne(&h, std::chrono::milliseconds(0))) {
-      missing = h.missing_triggers;
-      unpaired = h.unpaired;
-      trigger_state = h.trigger_state;
-      if (h.state == 2) {
+    while (sub.health->takeOne(&sub.h, std::chrono::milliseconds(0))) {
+      missing = sub.h.missing_triggers;
+      unpaired = sub.h.unpaired;
+      trigger_state = sub.h.trigger_state;
+      if (sub.h.state == 2) {
         ++degraded;
-        reason = h.last_error;
+        reason = sub.h.last_error;
       }
     }
   }
@@ -294,44 +319,32 @@ TEST(Daemon, MissingTriggersAndUnpairedFramesAreCountedNeverPairedWrongly) {
   EXPECT_EQ(trigger_state, "software 10 Hz");
   EXPECT_GE(degraded, 2);
   EXPECT_NE(reason.find("gave no frame pair"), std::string::npos) << reason;
-  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
-  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 
 // The recorder on a disk that fills (the kernel's file-size limit, prlimit): health says the
 // recording stopped and why, tracking goes on, the recording reads back to its last frame.
 TEST(Daemon, ARecordingThatFillsTheDiskStopsCleanlyAndTrackingGoesOn) {
-  if (access("/usr/bin/prlimit", X_OK) != 0)
-    GTEST_SKIP() << "SKIP: /usr/bin/prlimit (util-linux) is missing";
+  ASSERT_EQ(access("/usr/bin/prlimit", X_OK), 0)
+      << "/usr/bin/prlimit (util-linux, essential in Debian) is needed";
   test::TempDir dir;
   const uint32_t domain = 80;
   const auto recordings = dir.path() / "recordings";
   Daemon d(dir, domain, {"--run-for", "60"},
            "[recorder]\nenabled = true\ndir = \"" + recordings.string() + "\"\n",
            {"/usr/bin/prlimit", "--fsize=12000000"});
-  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
-  auto p = dds::Participant::create(domain);
-  ASSERT_TRUE(p);
-  auto features = dds::Reader::create(
-      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
-  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
-                                    dds::Profile::kTransientLocal);
-  ASSERT_TRUE(features && health);
-  const auto t0 = std::chrono::steady_clock::now();
-  const auto secs = [&] {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  };
-  pulsetrack_msgs_msg_dds__Features_ f{};
-  pulsetrack_msgs_msg_dds__Health_ h{};
+  Subscriber sub(domain);
+  ASSERT_TRUE(sub.ok());
+  const auto secs = [&] { return sub.secs(); };
   std::string recorder, stopped;
   int after_stop = 0, not_ok_after = 0;
   while (secs() < 50.0 && after_stop < 10) {
     d.drain(secs());
-    if (features->takeOne(&f, std::chrono::milliseconds(50)) && !stopped.empty()) ++after_stop;
-    while (health->takeOne(&h, std::chrono::milliseconds(0))) {
-      recorder = h.recorder_state;
+    if (sub.features->takeOne(&sub.f, std::chrono::milliseconds(50)) && !stopped.empty())
+      ++after_stop;
+    while (sub.health->takeOne(&sub.h, std::chrono::milliseconds(0))) {
+      recorder = sub.h.recorder_state;
       if (recorder.starts_with("stopped")) stopped = recorder;
-      if (!stopped.empty() && h.state != 1) ++not_ok_after;
+      if (!stopped.empty() && sub.h.state != 1) ++not_ok_after;
     }
   }
   kill(d.pid, SIGTERM);
@@ -350,8 +363,6 @@ TEST(Daemon, ARecordingThatFillsTheDiskStopsCleanlyAndTrackingGoesOn) {
   for (size_t i = 0; i < r->size(); ++i) EXPECT_TRUE(r->read(i, l, rr)) << i;
   const auto n = std::stoul(stopped.substr(std::string("stopped after ").size()));
   EXPECT_EQ(r->size(), n);
-  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
-  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 
 // A subscriber process that dies (SIGKILL, no goodbye) does not disturb the daemon: health
@@ -373,23 +384,13 @@ TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {
   posix_spawn_file_actions_addopen(&quiet, 1, "/dev/null", O_WRONLY, 0);
   ASSERT_EQ(posix_spawn(&listener, PULSETRACK_CLI, &quiet, nullptr, argv.data(), environ), 0);
   posix_spawn_file_actions_destroy(&quiet);
-  auto p = dds::Participant::create(domain);
-  ASSERT_TRUE(p);
-  auto features = dds::Reader::create(
-      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
-  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
-                                    dds::Profile::kTransientLocal);
-  ASSERT_TRUE(features && health);
-  const auto t0 = std::chrono::steady_clock::now();
-  const auto secs = [&] {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  };
-  pulsetrack_msgs_msg_dds__Features_ f{};
-  pulsetrack_msgs_msg_dds__Health_ h{};
+  Subscriber sub(domain);
+  ASSERT_TRUE(sub.ok());
+  const auto secs = [&] { return sub.secs(); };
   int before = 0, after = 0, not_ok_after = 0;
   bool killed = false;
   // Warm up: the first features (slow in a sanitizer build); then 3 s, the kill, 5 s.
-  for (int k = 0; k < 300 && !features->takeOne(&f, std::chrono::milliseconds(100)); ++k)
+  for (int k = 0; k < 300 && !sub.features->takeOne(&sub.f, std::chrono::milliseconds(100)); ++k)
     d.drain(secs());
   const double kill_at = secs() + 3.0, end_at = kill_at + 5.0;
   while (secs() < end_at) {
@@ -399,9 +400,9 @@ TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {
       waitpid(listener, nullptr, 0);
       killed = true;
     }
-    if (features->takeOne(&f, std::chrono::milliseconds(50))) (killed ? after : before)++;
-    while (health->takeOne(&h, std::chrono::milliseconds(0))) {
-      if (killed && h.state != 1) ++not_ok_after;
+    if (sub.features->takeOne(&sub.f, std::chrono::milliseconds(50))) (killed ? after : before)++;
+    while (sub.health->takeOne(&sub.h, std::chrono::milliseconds(0))) {
+      if (killed && sub.h.state != 1) ++not_ok_after;
     }
   }
   kill(d.pid, SIGTERM);
@@ -409,8 +410,6 @@ TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {
   EXPECT_GT(before, 3);
   EXPECT_GT(after, 5);  // still flowing after the crash
   EXPECT_EQ(not_ok_after, 0);
-  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
-  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 
 // The capture cycle over the command topic, by `pulsetrack ctl` and by raw samples: redetect
@@ -420,21 +419,13 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
   test::TempDir dir;
   const uint32_t domain = 76;
   Daemon d(dir, domain, {"--run-for", "60"});
-  auto p = dds::Participant::create(domain);
-  ASSERT_TRUE(p);
-  auto features = dds::Reader::create(
-      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
-  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
-                                    dds::Profile::kTransientLocal);
-  auto commands = dds::Writer::create(
-      *p, dds::kCommandTopic, &pulsetrack_msgs_msg_dds__Command__desc, dds::Profile::kCommand);
-  ASSERT_TRUE(features && health && commands);
-  const auto t0 = std::chrono::steady_clock::now();
-  const auto secs = [&] {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  };
-  pulsetrack_msgs_msg_dds__Features_ f{};
-  pulsetrack_msgs_msg_dds__Health_ h{};
+  Subscriber sub(domain);
+  ASSERT_TRUE(sub.ok());
+  auto commands =
+      dds::Writer::create(*sub.participant, dds::kCommandTopic,
+                          &pulsetrack_msgs_msg_dds__Command__desc, dds::Profile::kCommand);
+  ASSERT_TRUE(commands);
+  const auto secs = [&] { return sub.secs(); };
   // Features for `seconds`: how many samples, and the largest feature id seen.
   const auto collect = [&](double seconds, int& samples, int& max_id) {
     samples = 0;
@@ -442,17 +433,17 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
     const double until = secs() + seconds;
     while (secs() < until) {
       d.drain(secs());
-      if (!features->takeOne(&f, std::chrono::milliseconds(50))) continue;
+      if (!sub.features->takeOne(&sub.f, std::chrono::milliseconds(50))) continue;
       ++samples;
-      for (uint32_t i = 0; i < f.features._length; ++i)
-        max_id = std::max(max_id, f.features._buffer[i].id);
+      for (uint32_t i = 0; i < sub.f.features._length; ++i)
+        max_id = std::max(max_id, sub.f.features._buffer[i].id);
     }
   };
   const std::string ctl =
       test::cli() + " ctl --domain " + std::to_string(domain) + " --rig rig-e2e ";
   int n = 0, id0 = 0, id1 = 0, id2 = 0;
   // Warm up: the first features (detection, discovery; slow in a sanitizer build).
-  for (int k = 0; k < 300 && !features->takeOne(&f, std::chrono::milliseconds(100)); ++k)
+  for (int k = 0; k < 300 && !sub.features->takeOne(&sub.f, std::chrono::milliseconds(100)); ++k)
     d.drain(secs());
   collect(3.0, n, id0);
   EXPECT_GT(n, 3);
@@ -489,26 +480,25 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
   const double until = secs() + 4.0;
   while (secs() < until) {
     d.drain(secs());
-    while (health->takeOne(&h, std::chrono::milliseconds(20))) {
-      const std::string err = h.last_error;
+    while (sub.health->takeOne(&sub.h, std::chrono::milliseconds(20))) {
+      const std::string err = sub.h.last_error;
       if (err.find("refused") != std::string::npos) refused_seen = true;
       EXPECT_EQ(err.find('\x01'), std::string::npos) << err;  // not echoed raw
-      if (refused_seen && h.state == 1) ++ok_after;
+      if (refused_seen && sub.h.state == 1) ++ok_after;
     }
-    (void)features->takeOne(&f, std::chrono::milliseconds(10));
+    (void)sub.features->takeOne(&sub.f, std::chrono::milliseconds(10));
   }
   EXPECT_TRUE(refused_seen);
   EXPECT_GT(ok_after, 2);  // still tracking, still ok
   // ctl itself refuses what it cannot send.
   r = test::run(ctl + "set-roi");
   EXPECT_EQ(r.exit_code, 2) << r.output;
-  r = test::run(test::cli() + " ctl --domain " + std::to_string(domain + 1) + " stop");
+  // A domain no test uses (tests run in parallel, each daemon on its own domain).
+  r = test::run(test::cli() + " ctl --domain 231 stop");
   EXPECT_NE(r.exit_code, 0);
   EXPECT_NE(r.output.find("no pulsetrackd is listening"), std::string::npos) << r.output;
   kill(d.pid, SIGTERM);
   EXPECT_EQ(d.wait(secs), 0);
-  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
-  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 
 }  // namespace

@@ -58,17 +58,29 @@ class StallingSource final : public drivers::CameraSource {
   int64_t stall_end_ns_ = 0;
 };
 
-TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
-  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+// The first `n` pairs of the 60 s cortex case (supersample 1) and its rig.
+struct RenderedCortex {
+  vision::StereoRig rig;
+  std::vector<std::pair<cv::Mat, cv::Mat>> frames;
+};
+vision::Result<RenderedCortex> renderCortex(int n) {
   auto spec = sim::loadScene(std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-60s.toml");
-  ASSERT_TRUE(spec);
+  if (!spec) return std::unexpected(spec.error());
   auto rig = vision::loadRig(spec->rig_path);
-  ASSERT_TRUE(rig);
+  if (!rig) return std::unexpected(rig.error());
   spec->supersample = 1;
   sim::StereoSimulator s(*spec, *rig);
-  std::vector<std::pair<cv::Mat, cv::Mat>> frames(4);
-  for (int i = 0; i < 4; ++i)
-    s.render(i, frames[static_cast<size_t>(i)].first, frames[static_cast<size_t>(i)].second);
+  RenderedCortex r{*rig, std::vector<std::pair<cv::Mat, cv::Mat>>(static_cast<size_t>(n))};
+  for (size_t i = 0; i < r.frames.size(); ++i)
+    s.render(static_cast<int>(i), r.frames[i].first, r.frames[i].second);
+  return r;
+}
+
+TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+  auto scene = renderCortex(4);
+  ASSERT_TRUE(scene) << scene.error().message;
+  const auto& [rig, frames] = *scene;
 
   DaemonConfig config;
   config.rig_id = "rig-stall";
@@ -81,7 +93,7 @@ TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
                                     dds::Profile::kTransientLocal);
   ASSERT_TRUE(health);
   Pipeline pipeline(
-      config, std::make_unique<StallingSource>(frames, *rig, 20, std::chrono::milliseconds(2500)),
+      config, std::make_unique<StallingSource>(frames, rig, 20, std::chrono::milliseconds(2500)),
       *p);
   auto started = pipeline.start();
   ASSERT_TRUE(started) << started.error().message;
@@ -119,18 +131,12 @@ TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
 // tracks again; the pairs stay whole.
 TEST(Pipeline, AV4l2CameraUnpluggedAndPluggedBackIsReportedThenTrackedAgain) {
   setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
-  auto spec = sim::loadScene(std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-60s.toml");
-  ASSERT_TRUE(spec);
-  auto rig = vision::loadRig(spec->rig_path);
-  ASSERT_TRUE(rig);
-  spec->supersample = 1;
-  sim::StereoSimulator s(*spec, *rig);
-  std::vector<std::pair<cv::Mat, cv::Mat>> frames(4);
-  for (int i = 0; i < 4; ++i)
-    s.render(i, frames[static_cast<size_t>(i)].first, frames[static_cast<size_t>(i)].second);
+  auto scene = renderCortex(4);
+  ASSERT_TRUE(scene) << scene.error().message;
+  const auto& [rig, frames] = *scene;
   test::FakeV4l2 io;
   io.period_ns = 50'000'000;  // 20 Hz
-  const cv::Size size = rig->left.imageSize();
+  const cv::Size size = rig.left.imageSize();
   for (const char* dev : {"/dev/video0", "/dev/video1"}) {
     auto& d = io.add(dev);
     d.width = size.width;
@@ -162,7 +168,7 @@ TEST(Pipeline, AV4l2CameraUnpluggedAndPluggedBackIsReportedThenTrackedAgain) {
   auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
                                     dds::Profile::kTransientLocal);
   ASSERT_TRUE(health);
-  auto source = drivers::makeV4l2Source(io, vc, *rig);
+  auto source = drivers::makeV4l2Source(io, vc, rig);
   ASSERT_TRUE(source->start());
   Pipeline pipeline(config, std::move(source), *p);
   ASSERT_TRUE(pipeline.start());

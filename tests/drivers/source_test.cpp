@@ -14,11 +14,17 @@
 namespace pulsetrack::drivers {
 namespace {
 
-TEST(SimSource, SoftwareTriggerAtTheRateWithTheSimulatorsFrames) {
+// The default cortex scene, `frames` long, rendered fast (no supersampling).
+sim::SceneSpec cortex(int frames) {
   sim::SceneSpec spec;
   spec.kind = sim::SceneKind::kCortex;
   spec.supersample = 1;
-  spec.frames = 10;
+  spec.frames = frames;
+  return spec;
+}
+
+TEST(SimSource, SoftwareTriggerAtTheRateWithTheSimulatorsFrames) {
+  const sim::SceneSpec spec = cortex(10);
   sim::StereoSimulator reference(spec, sim::paperRig());
   auto src = makeSimSource(spec, sim::paperRig(), 10.0, /*loop=*/true);
   ASSERT_TRUE(src->start());
@@ -49,10 +55,7 @@ TEST(SimSource, SoftwareTriggerAtTheRateWithTheSimulatorsFrames) {
 }
 
 TEST(SimSource, InjectedTriggerAndCameraFaultsAreCountedAndNeverPairedWrongly) {
-  sim::SceneSpec spec;
-  spec.kind = sim::SceneKind::kCortex;
-  spec.supersample = 1;
-  spec.frames = 40;
+  const sim::SceneSpec spec = cortex(40);
   sim::StereoSimulator reference(spec, sim::paperRig());
   SimFaults faults;
   faults.missing_trigger_every = 5;  // triggers 4, 9, 14, ...

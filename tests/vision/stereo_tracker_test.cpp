@@ -8,6 +8,7 @@
 #include <iostream>
 #include <opencv2/imgproc.hpp>
 
+#include "pulsetrack/analysis/plate.hpp"
 #include "pulsetrack/record/track_csv.hpp"
 #include "pulsetrack/sim/evaluate.hpp"
 #include "pulsetrack/sim/paper_rig.hpp"
@@ -172,24 +173,18 @@ TEST(StereoTracker, RedetectsWhenTooFewRemain) {
   for (const Feature& f : tracker.features()) EXPECT_GT(f.id, max_id);
 }
 
-// Kabsch: the rigid transform taking `from` onto `to` (least squares).
+// Kabsch (analysis/plate.hpp) on OpenCV vectors, as the simulator's pose.
 sim::Pose fitRigid(const std::vector<cv::Vec3d>& from, const std::vector<cv::Vec3d>& to) {
-  cv::Vec3d ca(0, 0, 0), cb(0, 0, 0);
-  for (size_t i = 0; i < from.size(); ++i) {
-    ca += from[i];
-    cb += to[i];
+  std::vector<analysis::Vec3> a, b;
+  for (const cv::Vec3d& p : from) a.emplace_back(p[0], p[1], p[2]);
+  for (const cv::Vec3d& p : to) b.emplace_back(p[0], p[1], p[2]);
+  const analysis::Pose t = analysis::fitRigid(a, b);
+  sim::Pose out;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) out.r(r, c) = t.linear()(r, c);
+    out.t[r] = t.translation()[r];
   }
-  ca /= static_cast<double>(from.size());
-  cb /= static_cast<double>(to.size());
-  cv::Matx33d h = cv::Matx33d::zeros();
-  for (size_t i = 0; i < from.size(); ++i) h += (from[i] - ca) * (to[i] - cb).t();
-  cv::Mat w, u, vt;
-  cv::SVD::compute(cv::Mat(h), w, u, vt);
-  cv::Matx33d uu(reinterpret_cast<const double*>(u.data));
-  cv::Matx33d vv = cv::Matx33d(reinterpret_cast<const double*>(vt.data)).t();
-  const double d = cv::determinant(vv * uu.t()) < 0 ? -1.0 : 1.0;
-  const cv::Matx33d r = vv * cv::Matx33d::diag({1.0, 1.0, d}) * uu.t();
-  return {r, cb - r * ca};
+  return out;
 }
 
 // The paper's static plate protocol (section 4.C.1): the plate's pose from its six features,

@@ -13,11 +13,6 @@
 
 namespace pulsetrack::tools {
 
-int commandError(const char* command, const std::string& message) {
-  fmt::print(stderr, "pulsetrack {}: error: {}\n", command, message);
-  return 1;
-}
-
 namespace {
 
 struct ValidateArgs {

@@ -17,10 +17,6 @@ namespace pulsetrack::tools {
 
 namespace {
 
-int error(const char* command, const std::string& message) {
-  return commandError(command, message);
-}
-
 struct SimulateArgs {
   std::string scene;
   std::string out;
@@ -37,12 +33,13 @@ std::string duration(double s) {
 
 int runSimulate(const SimulateArgs& a) {
   auto spec = sim::loadScene(a.scene);
-  if (!spec) return error("simulate", spec.error().message);
+  if (!spec) return commandError("simulate", spec.error().message);
   if (a.frames > 0) spec->frames = a.frames;
   if (a.fps > 0) spec->fps = a.fps;
   if (a.supersample > 0) spec->supersample = a.supersample;
   auto rig = vision::loadRig(spec->rig_path);
-  if (!rig) return error("simulate", fmt::format("scene {}: {}", a.scene, rig.error().message));
+  if (!rig)
+    return commandError("simulate", fmt::format("scene {}: {}", a.scene, rig.error().message));
   sim::StereoSimulator simulator(*spec, *rig);
   const int n = simulator.frameCount();
   if (!a.quiet) {
@@ -62,7 +59,7 @@ int runSimulate(const SimulateArgs& a) {
     fmt::print(stderr, "  frame {}/{} ({}%), {:.1f} frames/s, {} left\n", done, total, pct, rate,
                duration((total - done) / std::max(rate, 1e-9)));
   });
-  if (!ok) return error("simulate", ok.error().message);
+  if (!ok) return commandError("simulate", ok.error().message);
   int dropped = 0;
   for (int i = 0; i < n; ++i) dropped += simulator.dropped(i) ? 1 : 0;
   fmt::print(
@@ -83,16 +80,17 @@ int runEvaluate(const EvaluateArgs& a) {
   const std::filesystem::path dir(a.recording);
   auto spec = sim::loadScene(dir / "scene.toml");
   if (!spec) {
-    return error("evaluate", fmt::format("{} is not a simulated recording (its scene.toml: {})",
-                                         a.recording, spec.error().message));
+    return commandError(
+        "evaluate", fmt::format("{} is not a simulated recording (its scene.toml: {})", a.recording,
+                                spec.error().message));
   }
   auto reader = record::Reader::open(dir);
-  if (!reader) return error("evaluate", reader.error().message);
+  if (!reader) return commandError("evaluate", reader.error().message);
   sim::StereoSimulator simulator(*spec, reader->rig());
   auto rows = record::readTrackCsv(a.track);
-  if (!rows) return error("evaluate", rows.error().message);
+  if (!rows) return commandError("evaluate", rows.error().message);
   auto ev = sim::evaluateTrack(simulator, *rows, a.threshold);
-  if (!ev) return error("evaluate", fmt::format("{}: {}", a.track, ev.error().message));
+  if (!ev) return commandError("evaluate", fmt::format("{}: {}", a.track, ev.error().message));
   std::string not_ok;
   long not_ok_rows = 0;
   for (const auto& [status, count] : ev->not_ok) {
@@ -129,7 +127,7 @@ int runEvaluate(const EvaluateArgs& a) {
       f << fmt::format("{},{},{:.6f},{:.6f},{:.6f},{:.6f}\n", r.frame, r.id, r.error_mm,
                        r.error_vec[0], r.error_vec[1], r.error_vec[2]);
     }
-    if (!f) return error("evaluate", fmt::format("{}: write failed", a.out));
+    if (!f) return commandError("evaluate", fmt::format("{}: write failed", a.out));
     fmt::print("per-row errors        {}\n", a.out);
   }
   return 0;

@@ -20,10 +20,6 @@ namespace pulsetrack::tools {
 
 namespace {
 
-int error(const char* command, const std::string& message) {
-  return commandError(command, message);
-}
-
 vision::Result<cv::Rect> parseRect(const std::string& text, const char* option) {
   int v[4] = {0, 0, 0, 0};
   const char* p = text.data();
@@ -109,17 +105,17 @@ struct MatchArgs : CommonArgs {
 
 int runMatch(const MatchArgs& a) {
   auto rig = vision::loadRig(a.rig);
-  if (!rig) return error("match", rig.error().message);
+  if (!rig) return commandError("match", rig.error().message);
   auto roi = rois(a);
-  if (!roi) return error("match", roi.error().message);
+  if (!roi) return commandError("match", roi.error().message);
   auto left = readGrey(a.left);
-  if (!left) return error("match", left.error().message);
+  if (!left) return commandError("match", left.error().message);
   auto right = readGrey(a.right);
-  if (!right) return error("match", right.error().message);
+  if (!right) return commandError("match", right.error().message);
   const vision::TrackerConfig config = a.config();
   vision::StereoTracker tracker(*rig, config);
   auto ok = tracker.initialize(*left, *right, *roi, a.depth);
-  if (!ok) return error("match", ok.error().message);
+  if (!ok) return commandError("match", ok.error().message);
   std::ofstream out(a.out);
   out << "id,xl,yl,xr,yr,ncc,nmi,epipolar_px,x,y,z,status\n";
   int id = 0;
@@ -129,7 +125,7 @@ int runMatch(const MatchArgs& a) {
         c.left[0], c.left[1], c.right[0], c.right[1], c.ncc, c.nmi, c.epipolar_px, c.point[0],
         c.point[1], c.point[2], vision::toString(c.status));
   }
-  if (!out) return error("match", fmt::format("{}: write failed", a.out));
+  if (!out) return commandError("match", fmt::format("{}: write failed", a.out));
   fmt::print("{} candidates, {} ok, written to {}\n", tracker.candidates().size(), *ok, a.out);
   return 0;
 }
@@ -144,32 +140,32 @@ struct TrackArgs : CommonArgs {
 
 int runTrack(const TrackArgs& a) {
   auto roi = rois(a);
-  if (!roi) return error("track", roi.error().message);
+  if (!roi) return commandError("track", roi.error().message);
   std::optional<record::Reader> reader;
   std::vector<std::pair<std::string, std::string>> pairs;
   vision::StereoRig rig;
   if (!a.input.empty()) {
     if (!a.left.empty() || !a.right.empty())
-      return error("track", "give --input or --left/--right, not both");
+      return commandError("track", "give --input or --left/--right, not both");
     auto r = record::Reader::open(a.input);
-    if (!r) return error("track", r.error().message);
+    if (!r) return commandError("track", r.error().message);
     if (const auto& cut = r->truncation(); cut.has_value())
       fmt::print(stderr, "warning: {}: {}\n", a.input, cut.value());
     reader.emplace(std::move(*r));
     rig = reader->rig();
   } else {
     if (a.left.empty() || a.right.empty())
-      return error("track", "give --input RECORDING, or --left and --right globs");
+      return commandError("track", "give --input RECORDING, or --left and --right globs");
     auto p = pairImages(a.left, a.right);
-    if (!p) return error("track", p.error().message);
+    if (!p) return commandError("track", p.error().message);
     pairs = std::move(*p);
   }
   if (!a.rig.empty()) {
     auto r = vision::loadRig(a.rig);
-    if (!r) return error("track", r.error().message);
+    if (!r) return commandError("track", r.error().message);
     rig = *r;
   } else if (!reader) {
-    return error("track", "--rig is required with image sequences");
+    return commandError("track", "--rig is required with image sequences");
   }
   const size_t n = reader ? reader->size() : pairs.size();
   const vision::TrackerConfig config = a.config();
@@ -183,20 +179,21 @@ int runTrack(const TrackArgs& a) {
     long frame = static_cast<long>(i);
     double t = static_cast<double>(i) / a.fps;
     if (reader) {
-      if (auto ok = reader->read(i, left, right); !ok) return error("track", ok.error().message);
+      if (auto ok = reader->read(i, left, right); !ok)
+        return commandError("track", ok.error().message);
       frame = static_cast<long>(reader->meta(i).frame);
       t = static_cast<double>(reader->meta(i).t_left_ns) * 1e-9;
     } else {
       auto l = readGrey(pairs[i].first);
-      if (!l) return error("track", l.error().message);
+      if (!l) return commandError("track", l.error().message);
       auto r = readGrey(pairs[i].second);
-      if (!r) return error("track", r.error().message);
+      if (!r) return commandError("track", r.error().message);
       left = *l;
       right = *r;
     }
     if (i == 0) {
       auto ok = tracker.initialize(left, right, *roi, a.depth);
-      if (!ok) return error("track", ok.error().message);
+      if (!ok) return commandError("track", ok.error().message);
       initial = *ok;
       if (!a.quiet) fmt::print(stderr, "frame 0: {} features\n", initial);
     } else {
@@ -207,7 +204,7 @@ int runTrack(const TrackArgs& a) {
       if (tracker.needsRedetection()) {
         // Too few left (a long occlusion, the surface moved out of the ROI): detect again.
         auto ok = tracker.redetect(left, right);
-        if (!ok) return error("track", ok.error().message);
+        if (!ok) return commandError("track", ok.error().message);
         ++redetections;
         if (!a.quiet)
           fmt::print(stderr, "frame {}: too few features ok, re-detected {}\n", frame, *ok);
@@ -222,7 +219,8 @@ int runTrack(const TrackArgs& a) {
                  tracker.features().size());
     }
   }
-  if (auto ok = record::writeTrackCsv(a.out, rows); !ok) return error("track", ok.error().message);
+  if (auto ok = record::writeTrackCsv(a.out, rows); !ok)
+    return commandError("track", ok.error().message);
   std::sort(step_us.begin(), step_us.end());
   const auto pct = [&](double p) {
     return step_us.empty()
