@@ -228,6 +228,9 @@ void Pipeline::trackLoop() {
     tracked_.fetch_add(1);
     results_seq_.fetch_add(1, std::memory_order_release);
     results_seq_.notify_one();
+    // The pair's result is on its way: now, off the latency, some features' stereo match is
+    // taken again (a fixed number per pair, so the stage's time stays bounded).
+    tracker.refreshStereo(f->pair.left, f->pair.right);
   }
 }
 

@@ -24,6 +24,7 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_EQ(c->track.fifo_priority, 70);
   EXPECT_EQ(c->capture.cpu, -1);
   EXPECT_DOUBLE_EQ(c->fps, 30.0);
+  EXPECT_EQ(c->tracker.stereo_refresh, 25);
   EXPECT_EQ(c->sim_faults.missing_trigger_every + c->sim_faults.left_drop_every +
                 c->sim_faults.right_miss_every,
             0);  // no injected faults as shipped
@@ -70,6 +71,8 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError("[source.right]\nbuffers = 1\n", "pulsetrackd.toml:2: source.right.buffers");
   expectError("[trigger]\nkind = \"usb\"\n", "trigger.kind: expected one of box, none");
   expectError("[recorder]\nslots = 1\n", "recorder.slots");
+  expectError("[tracker]\nmax_features = 50\nstereo_refresh = 60\n",
+              "pulsetrackd.toml:3: tracker.stereo_refresh");
   expectError("[source.faults]\nright_drop_every = 3\n",
               "unknown key 'source.faults.right_drop_every'");
   expectError(

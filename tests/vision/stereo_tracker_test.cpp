@@ -34,11 +34,14 @@ Roi roiFor(const sim::StereoSimulator& s, double r) {
 struct TrackRun {
   sim::Evaluation ev;
   int initial_ok = 0;
+  // The largest mean displacement (point - point0) of the ok features in any frame: a static
+  // scene's is noise, and the stereo refresh must not add a drift to it.
+  double max_mean_displacement_mm = 0.0;
 };
 
-TrackRun trackScene(const sim::SceneSpec& spec, int frames) {
+TrackRun trackScene(const sim::SceneSpec& spec, int frames, const TrackerConfig& config = {}) {
   sim::StereoSimulator s(spec, sim::paperRig());
-  StereoTracker tracker(s.rig(), TrackerConfig{});
+  StereoTracker tracker(s.rig(), config);
   cv::Mat l, r;
   s.render(0, l, r);
   TrackRun run;
@@ -52,10 +55,21 @@ TrackRun trackScene(const sim::SceneSpec& spec, int frames) {
       s.render(i, l, r);
       tracker.track(l, r);
     }
+    cv::Vec3d moved(0, 0, 0);
+    int ok_now = 0;
     for (const Feature& f : tracker.features()) {
       rows.push_back({i, s.frameTime(i), f.id, f.left[0], f.left[1], f.right[0], f.right[1],
                       f.point[0], f.point[1], f.point[2], f.ncc, f.nmi, toString(f.status)});
+      if (f.status == FeatureStatus::kOk) {
+        moved += f.point - f.point0;
+        ++ok_now;
+      }
     }
+    if (ok_now > 0) {
+      run.max_mean_displacement_mm =
+          std::max(run.max_mean_displacement_mm, cv::norm(moved) / ok_now);
+    }
+    tracker.refreshStereo(l, r);  // after the pair's result, as the daemon does
   }
   auto ev = sim::evaluateTrack(s, rows, 0.5);
   EXPECT_TRUE(ev) << ev.error().message;
@@ -78,7 +92,7 @@ sim::SceneSpec staticCortex() {
 }
 
 void report(const char* what, const TrackRun& run, double& worst_feature, long& occluded,
-            double& median_feature) {
+            double& median_feature, long* over_005 = nullptr) {
   const sim::Evaluation& ev = run.ev;
   worst_feature = 0.0;
   std::vector<double> per;
@@ -89,50 +103,80 @@ void report(const char* what, const TrackRun& run, double& worst_feature, long& 
   std::sort(per.begin(), per.end());
   median_feature = per.empty() ? 0.0 : per[per.size() / 2];
   const auto over = std::count_if(per.begin(), per.end(), [](double v) { return v > 0.05; });
+  if (over_005 != nullptr) *over_005 = over;
   occluded = ev.not_ok.count("occluded") != 0U ? ev.not_ok.at("occluded") : 0;
   std::cout << what << ": " << run.initial_ok << " features; 3D error RMS " << ev.rms_mm
             << " mm, per-feature RMS median " << median_feature << " mm, worst " << worst_feature
             << " mm, " << over << " features over 0.05 mm; max " << ev.max_mm << " mm, "
-            << ev.outliers << " ok rows > 0.5 mm; " << occluded << " rows occluded\n";
+            << ev.outliers << " ok rows > 0.5 mm; " << occluded
+            << " rows occluded; mean displacement at most " << run.max_mean_displacement_mm
+            << " mm\n";
 }
 
-// The issue: per-feature 3D RMS <= 0.05 mm; no ok row off by more than 0.5 mm. Met overall
-// (every ok row of every feature) and by the median feature on both surfaces; not by every
-// feature: each feature's error is mostly a constant offset from its frame-0 stereo match
-// (0.63 mm of depth per pixel of disparity here, so 0.05 mm is 0.08 px), and a few features
-// are matched 0.1-0.25 px off: on the glossy cortex, where sheen below the glint threshold
-// differs between the views. A constant offset does not enter the displacements the system
-// reports, but it is an error of the position, and these tests hold it where it is.
+// The issue: per-feature 3D RMS <= 0.05 mm; no ok row off by more than 0.5 mm. Over nine
+// seconds of a static matte cortex (the instrument crossing) every feature's RMS is within it.
+// What it takes: the video match's translation refinement on 23x23 (per-frame noise), and the
+// stereo refresh, which averages each feature's left-right match over later pairs: the first
+// pair's match alone carries that pair's sensor noise for good (features up to 0.1 mm off).
 TEST(StereoTracker, StaticMatteCortexAt45cm) {
   sim::SceneSpec spec = staticCortex();
   spec.cortex.specular_strength = 0.0;
-  const TrackRun run = trackScene(spec, 30);
+  const TrackRun run = trackScene(spec, 90);
   double worst = 0, median = 0;
   long occluded = 0;
-  report("static matte cortex, 45 cm, 30 frames, noise 2 grey levels, instrument", run, worst,
+  report("static matte cortex, 45 cm, 90 frames, noise 2 grey levels, instrument", run, worst,
          occluded, median);
   EXPECT_GE(run.initial_ok, 80);
-  EXPECT_LE(run.ev.rms_mm, 0.05);
-  EXPECT_LE(median, 0.05);
-  EXPECT_LE(worst, 0.1);
+  EXPECT_LE(run.ev.rms_mm, 0.04);
+  EXPECT_LE(median, 0.035);
+  EXPECT_LE(worst, 0.05);  // every feature
   EXPECT_LE(run.ev.max_mm, 0.25);
   EXPECT_EQ(run.ev.outliers, 0);
   EXPECT_GT(occluded, 0);  // the instrument was seen and reported, not tracked through
+  // The refresh corrects point0 with the position: a static scene shows no displacement.
+  EXPECT_LE(run.max_mean_displacement_mm, 0.015);
 }
 
+// Glossy tissue: sheen below the glint threshold differs between the views and biases a
+// stereo match by what no averaging removes (it is the same in every pair). The sheen gate
+// (a patch brighter in one view than its neighbours' gain ratio says) drops the worst; a few
+// features stay above 0.05 mm.
 TEST(StereoTracker, StaticGlossyCortexAt45cm) {
-  const TrackRun run = trackScene(staticCortex(), 30);
+  const TrackRun run = trackScene(staticCortex(), 90);
   double worst = 0, median = 0;
-  long occluded = 0;
-  report("static glossy cortex (glints), 45 cm, 30 frames, noise 2 grey levels, instrument", run,
-         worst, occluded, median);
+  long occluded = 0, over = 0;
+  report("static glossy cortex (glints), 45 cm, 90 frames, noise 2 grey levels, instrument", run,
+         worst, occluded, median, &over);
   EXPECT_GE(run.initial_ok, 60);
-  EXPECT_LE(run.ev.rms_mm, 0.05);
-  EXPECT_LE(median, 0.05);
-  EXPECT_LE(worst, 0.2);
+  EXPECT_LE(run.ev.rms_mm, 0.04);
+  EXPECT_LE(median, 0.035);
+  EXPECT_LE(worst, 0.12);
+  EXPECT_LE(over, 4);
   EXPECT_LE(run.ev.max_mm, 0.5);  // the issue: no ok feature off by more than 0.5 mm in any frame
   EXPECT_EQ(run.ev.outliers, 0);
   EXPECT_GT(occluded, 0);  // the instrument and the glints were seen and reported
+  EXPECT_LE(run.max_mean_displacement_mm, 0.015);
+}
+
+// The stereo refresh against none, same scene, same frames: the first pair's noise stays in
+// every feature without it.
+TEST(StereoTracker, StereoRefreshTakesTheFirstPairsNoiseOut) {
+  sim::SceneSpec spec = staticCortex();
+  spec.cortex.specular_strength = 0.0;
+  spec.cortex.instrument.enabled = false;
+  TrackerConfig off;
+  off.stereo_refresh = 0;
+  const TrackRun with = trackScene(spec, 60);
+  const TrackRun without = trackScene(spec, 60, off);
+  double worst_with = 0, worst_without = 0, median_with = 0, median_without = 0;
+  long occluded = 0, over_with = 0, over_without = 0;
+  report("refresh on", with, worst_with, occluded, median_with, &over_with);
+  report("refresh off", without, worst_without, occluded, median_without, &over_without);
+  EXPECT_LT(worst_with, 0.8 * worst_without);
+  EXPECT_LT(with.ev.rms_mm, 0.9 * without.ev.rms_mm);
+  EXPECT_LT(over_with * 3, over_without);
+  // It moves point0 with the position: the displacements see none of it.
+  EXPECT_NEAR(with.max_mean_displacement_mm, without.max_mean_displacement_mm, 0.003);
 }
 
 // Re-detection: when most features are lost (here the right camera goes dark), the tracker

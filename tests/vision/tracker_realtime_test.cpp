@@ -109,6 +109,9 @@ TEST(TrackerRealtime, TrackAllocatesNothingAndLocksNothing) {
   static_assert(noexcept(std::declval<StereoTracker&>().track(std::declval<const cv::Mat&>(),
                                                               std::declval<const cv::Mat&>())),
                 "the per-frame step must be noexcept");
+  static_assert(noexcept(std::declval<StereoTracker&>().refreshStereo(
+                    std::declval<const cv::Mat&>(), std::declval<const cv::Mat&>())),
+                "the stereo refresh runs on the tracking thread too");
   sim::SceneSpec spec;
   spec.kind = sim::SceneKind::kCortex;
   spec.supersample = 1;
@@ -126,15 +129,20 @@ TEST(TrackerRealtime, TrackAllocatesNothingAndLocksNothing) {
   ASSERT_TRUE(ok) << ok.error().message;
   ASSERT_GT(*ok, 20);
   tracker.track(left[1], right[1]);  // warm-up (first-use initialisation in libraries)
+  (void)tracker.refreshStereo(left[1], right[1]);
   g_allocations = 0;
   g_locks = 0;
   g_counting = true;
-  for (int i = 2; i < 13; ++i)
+  int refreshed = 0;
+  for (int i = 2; i < 13; ++i) {
     tracker.track(left[static_cast<size_t>(i)], right[static_cast<size_t>(i)]);
+    refreshed += tracker.refreshStereo(left[static_cast<size_t>(i)], right[static_cast<size_t>(i)]);
+  }
   g_counting = false;
-  EXPECT_EQ(g_allocations.load(), 0) << "heap allocations in 11 calls of track()";
-  EXPECT_EQ(g_locks.load(), 0) << "mutex locks in 11 calls of track()";
+  EXPECT_EQ(g_allocations.load(), 0) << "heap allocations in 11 calls of track() + refreshStereo()";
+  EXPECT_EQ(g_locks.load(), 0) << "mutex locks in 11 calls of track() + refreshStereo()";
   EXPECT_GT(tracker.okCount(), 10);
+  EXPECT_GT(refreshed, 50);  // the refresh ran (25 per pair at most)
 }
 
 TEST(TrackerRealtime, PairingAndTheRecordersOfferAllocateNothingAndLockNothing) {

@@ -43,6 +43,7 @@ struct CommonArgs {
   std::string roi_right;
   double depth = 20.0;
   int max_features = 100;
+  int stereo_refresh = vision::TrackerConfig{}.stereo_refresh;
   bool no_refinement = false;
   std::string detector = "harris";
   std::string out;
@@ -50,6 +51,7 @@ struct CommonArgs {
   [[nodiscard]] vision::TrackerConfig config() const {
     vision::TrackerConfig c;
     c.max_features = max_features;
+    c.stereo_refresh = stereo_refresh;
     c.refinement = !no_refinement;
     c.detector = detector == "blobs" ? vision::Detector::kDarkBlobs : vision::Detector::kHarris;
     return c;
@@ -68,6 +70,11 @@ void addCommon(CLI::App* cmd, CommonArgs& a, bool rig_required) {
       ->capture_default_str();
   cmd->add_option("--max-features", a.max_features, "Feature ceiling")
       ->check(CLI::Range(1, 1000))
+      ->capture_default_str();
+  cmd->add_option("--stereo-refresh", a.stereo_refresh,
+                  "Features whose stereo match is taken again per pair and averaged (takes the "
+                  "first pair's sensor noise out of the positions; 0: off)")
+      ->check(CLI::Range(0, 1000))
       ->capture_default_str();
   cmd->add_flag("--no-refinement", a.no_refinement,
                 "NCC with the paper's quadratic peak only (no sub-pixel refinement)");
@@ -214,6 +221,8 @@ int runTrack(const TrackArgs& a) {
       rows.push_back({frame, t, f.id, f.left[0], f.left[1], f.right[0], f.right[1], f.point[0],
                       f.point[1], f.point[2], f.ncc, f.nmi, vision::toString(f.status)});
     }
+    // As the daemon does once a pair's result is out: match some features' stereo again.
+    tracker.refreshStereo(left, right);
     if (!a.quiet && (i + 1) % 50 == 0) {
       fmt::print(stderr, "frame {}/{}: {} of {} features ok\n", i + 1, n, tracker.okCount(),
                  tracker.features().size());

@@ -46,29 +46,66 @@ bool sampleBicubic(const uint8_t* image, size_t stride, int width, int height, d
 
 namespace {
 
-// Samples the warped patch (bicubic: bilinear sampling is biased by up to 0.04 px on
-// textures of a few pixels' scale, see tests/vision/affine_refiner_test.cpp); false when it
-// leaves the image. The patch is affine, so checking its four corners bounds every sample,
-// and the sample position steps by the warp's columns along a row.
-bool warpPatch(const uint8_t* image, size_t stride, int width, int height, const AffineWarp& w,
-               std::array<float, kAffinePixels>& out) noexcept {
-  for (const int cy : {-kAffineHalf, kAffineHalf}) {
-    for (const int cx : {-kAffineHalf, kAffineHalf}) {
+// Samples the side x side patch through the warp (bicubic: bilinear sampling is biased by up to
+// 0.04 px on textures of a few pixels' scale, see tests/vision/affine_refiner_test.cpp); false
+// when it leaves the image. The patch is affine, so checking its four corners bounds every
+// sample, and the sample position steps by the warp's columns along a row.
+template <int kSideT>
+bool warpedPatch(const uint8_t* image, size_t stride, int width, int height, const AffineWarp& w,
+                 float* out) noexcept {
+  constexpr int kHalfT = kSideT / 2;
+  for (const int cy : {-kHalfT, kHalfT}) {
+    for (const int cx : {-kHalfT, kHalfT}) {
       const double u = w.centre[0] + w.a(0, 0) * cx + w.a(0, 1) * cy;
       const double v = w.centre[1] + w.a(1, 0) * cx + w.a(1, 1) * cy;
       if (!(u >= 1.0) || !(v >= 1.0) || u >= width - 2 || v >= height - 2) return false;
     }
   }
-  int k = 0;
-  for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
-    double u = w.centre[0] - w.a(0, 0) * kAffineHalf + w.a(0, 1) * y;
-    double v = w.centre[1] - w.a(1, 0) * kAffineHalf + w.a(1, 1) * y;
-    for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k, u += w.a(0, 0), v += w.a(1, 0)) {
+  size_t k = 0;
+  for (int y = -kHalfT; y <= kHalfT; ++y) {
+    double u = w.centre[0] - w.a(0, 0) * kHalfT + w.a(0, 1) * y;
+    double v = w.centre[1] - w.a(1, 0) * kHalfT + w.a(1, 1) * y;
+    for (int x = -kHalfT; x <= kHalfT; ++x, ++k, u += w.a(0, 0), v += w.a(1, 0)) {
       const int x0 = static_cast<int>(u);
       const int y0 = static_cast<int>(v);
-      out[static_cast<size_t>(k)] =
+      out[k] =
           bicubicAt(image, stride, x0, y0, static_cast<float>(u - x0), static_cast<float>(v - y0));
     }
+  }
+  return true;
+}
+
+// The side x side patch around `centre` (the template, or with one pixel of margin for its
+// gradients), by separable Catmull-Rom: a horizontal pass over the rows the vertical pass
+// needs, then the vertical pass. False when a tap would leave the image.
+template <int kSideT>
+bool sampledPatch(const uint8_t* image, size_t stride, int width, int height,
+                  const cv::Vec2d& centre, float* out) noexcept {
+  constexpr int kHalfT = kSideT / 2;
+  constexpr size_t kS = kSideT;
+  const double fx0 = std::floor(centre[0]), fy0 = std::floor(centre[1]);
+  if (!(std::abs(fx0) < 1e6) || !(std::abs(fy0) < 1e6)) return false;
+  const int x0 = static_cast<int>(fx0) - kHalfT - 1;  // first tap column
+  const int y0 = static_cast<int>(fy0) - kHalfT - 1;
+  if (x0 < 0 || y0 < 0 || x0 + kSideT + 3 > width || y0 + kSideT + 3 > height) return false;
+  float wx[4], wy[4];
+  catmullRom(static_cast<float>(centre[0] - fx0), wx);
+  catmullRom(static_cast<float>(centre[1] - fy0), wy);
+  // (side + 3) rows x side columns; every element is written before it is read.
+  std::array<float, (kSideT + 3) * kS> rows;  // NOLINT(cppcoreguidelines-pro-type-member-init)
+  for (size_t r = 0; r < kS + 3; ++r) {
+    const uint8_t* p = image + (static_cast<size_t>(y0) + r) * stride + static_cast<size_t>(x0);
+    float* o = rows.data() + r * kS;
+    for (size_t c = 0; c < kS; ++c) {
+      o[c] = wx[0] * static_cast<float>(p[c]) + wx[1] * static_cast<float>(p[c + 1]) +
+             wx[2] * static_cast<float>(p[c + 2]) + wx[3] * static_cast<float>(p[c + 3]);
+    }
+  }
+  for (size_t r = 0; r < kS; ++r) {
+    const float* a = rows.data() + r * kS;
+    float* o = out + r * kS;
+    for (size_t c = 0; c < kS; ++c)
+      o[c] = wy[0] * a[c] + wy[1] * a[kS + c] + wy[2] * a[2 * kS + c] + wy[3] * a[3 * kS + c];
   }
   return true;
 }
@@ -87,32 +124,40 @@ void meanSpread(const std::array<float, kAffinePixels>& p, double& mean, double&
 
 bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int height,
                          const AffineWarp& warp) noexcept {
-  if (!warpPatch(image, stride, width, height, warp, t_)) return false;
-  meanSpread(t_, mean_, spread_);
-  if (spread_ < 1.0) return false;
-  // Gradients of the template by central differences on a one-pixel-larger warped patch.
+  // The warped patch with one sample of margin: the template is its interior, the gradients
+  // its central differences (the samples one template pixel away).
+  constexpr int kBig = kAffineSide + 2;
+  std::array<float, static_cast<size_t>(kBig) * kBig> big{};
+  if (warp.a == cv::Matx22d::eye()) {
+    if (!sampledPatch<kBig>(image, stride, width, height, warp.centre, big.data())) return false;
+  } else if (!warpedPatch<kBig>(image, stride, width, height, warp, big.data())) {
+    return false;
+  }
+  const auto at = [&](int x, int y) {  // x, y in [-kAffineHalf - 1, kAffineHalf + 1]
+    return big[static_cast<size_t>(y + kAffineHalf + 1) * kBig +
+               static_cast<size_t>(x + kAffineHalf + 1)];
+  };
   cv::Matx<double, 6, 6> h = cv::Matx<double, 6, 6>::zeros();
   int k = 0;
   for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
     for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
-      float xp = 0, xm = 0, yp = 0, ym = 0;
-      const auto at = [&](double dx, double dy, float& o) {
-        const double u = warp.centre[0] + warp.a(0, 0) * (x + dx) + warp.a(0, 1) * (y + dy);
-        const double v = warp.centre[1] + warp.a(1, 0) * (x + dx) + warp.a(1, 1) * (y + dy);
-        return sampleBicubic(image, stride, width, height, u, v, o);
-      };
-      if (!at(1, 0, xp) || !at(-1, 0, xm) || !at(0, 1, yp) || !at(0, -1, ym)) return false;
-      const double gx = 0.5 * (xp - xm);
-      const double gy = 0.5 * (yp - ym);
+      t_[static_cast<size_t>(k)] = at(x, y);
+      const double gx = 0.5 * (at(x + 1, y) - at(x - 1, y));
+      const double gy = 0.5 * (at(x, y + 1) - at(x, y - 1));
       // d(warp)/d(params) at identity, params = (da00, da10, da01, da11, dtx, dty).
       const double sd[6] = {gx * x, gy * x, gx * y, gy * y, gx, gy};
       auto& row = sd_[static_cast<size_t>(k)];
       for (int i = 0; i < 6; ++i) {
         row[static_cast<size_t>(i)] = static_cast<float>(sd[i]);
-        for (int j = 0; j < 6; ++j) h(i, j) += sd[i] * sd[j];
+        for (int j = i; j < 6; ++j) h(i, j) += sd[i] * sd[j];
       }
     }
   }
+  for (int i = 0; i < 6; ++i) {
+    for (int j = 0; j < i; ++j) h(i, j) = h(j, i);
+  }
+  meanSpread(t_, mean_, spread_);
+  if (spread_ < 1.0) return false;
   bool ok = false;
   h_inv_ = h.inv(cv::DECOMP_CHOLESKY, &ok);
   return ok;
@@ -126,7 +171,7 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
   std::array<float, kAffinePixels> patch{};
   for (int it = 0; it < max_iterations; ++it) {
     res.iterations = it + 1;
-    if (!warpPatch(image, stride, width, height, res.warp, patch)) return res;
+    if (!warpedPatch<kAffineSide>(image, stride, width, height, res.warp, patch.data())) return res;
     double mean = 0, spread = 0;
     meanSpread(patch, mean, spread);
     if (spread < 1e-6) return res;
@@ -166,60 +211,21 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
   return res;
 }
 
-namespace {
-
-// The side x side patch around `centre` (the template, or with one pixel of margin for its
-// gradients), by separable Catmull-Rom: a horizontal pass over the rows the vertical pass
-// needs, then the vertical pass. False when a tap would leave the image.
-constexpr int kShiftSide = kAffineSide + 2;
-
-template <int kSideT>
-bool shiftedPatch(const uint8_t* image, size_t stride, int width, int height,
-                  const cv::Vec2d& centre, float* out) noexcept {
-  constexpr int kHalfT = kSideT / 2;
-  constexpr size_t kS = kSideT;
-  const double fx0 = std::floor(centre[0]), fy0 = std::floor(centre[1]);
-  if (!(std::abs(fx0) < 1e6) || !(std::abs(fy0) < 1e6)) return false;
-  const int x0 = static_cast<int>(fx0) - kHalfT - 1;  // first tap column
-  const int y0 = static_cast<int>(fy0) - kHalfT - 1;
-  if (x0 < 0 || y0 < 0 || x0 + kSideT + 3 > width || y0 + kSideT + 3 > height) return false;
-  float wx[4], wy[4];
-  catmullRom(static_cast<float>(centre[0] - fx0), wx);
-  catmullRom(static_cast<float>(centre[1] - fy0), wy);
-  // (side + 3) rows x side columns; every element is written before it is read.
-  std::array<float, (kSideT + 3) * kS> rows;  // NOLINT(cppcoreguidelines-pro-type-member-init)
-  for (size_t r = 0; r < kS + 3; ++r) {
-    const uint8_t* p = image + (static_cast<size_t>(y0) + r) * stride + static_cast<size_t>(x0);
-    float* o = rows.data() + r * kS;
-    for (size_t c = 0; c < kS; ++c) {
-      o[c] = wx[0] * static_cast<float>(p[c]) + wx[1] * static_cast<float>(p[c + 1]) +
-             wx[2] * static_cast<float>(p[c + 2]) + wx[3] * static_cast<float>(p[c + 3]);
-    }
-  }
-  for (size_t r = 0; r < kS; ++r) {
-    const float* a = rows.data() + r * kS;
-    float* o = out + r * kS;
-    for (size_t c = 0; c < kS; ++c)
-      o[c] = wy[0] * a[c] + wy[1] * a[kS + c] + wy[2] * a[2 * kS + c] + wy[3] * a[3 * kS + c];
-  }
-  return true;
-}
-
-}  // namespace
+constexpr int kShiftBig = kShiftSide + 2;  // the template with a sample of margin
 
 bool ShiftTemplate::set(const uint8_t* image, size_t stride, int width, int height,
                         const cv::Vec2d& centre) noexcept {
-  std::array<float, kShiftSide * kShiftSide> big{};
-  if (!shiftedPatch<kShiftSide>(image, stride, width, height, centre, big.data())) return false;
+  std::array<float, kShiftBig * kShiftBig> big{};
+  if (!sampledPatch<kShiftBig>(image, stride, width, height, centre, big.data())) return false;
   cv::Matx22d h = cv::Matx22d::zeros();
   t_.fill(0.0F);
   gx_.fill(0.0F);
   gy_.fill(0.0F);
   sum_t_ = sum_tt_ = sum_gx_ = sum_gy_ = sum_gxt_ = sum_gyt_ = 0.0;
-  for (int y = 0; y < kAffineSide; ++y) {
-    for (int x = 0; x < kAffineSide; ++x) {
+  for (int y = 0; y < kShiftSide; ++y) {
+    for (int x = 0; x < kShiftSide; ++x) {
       const auto at = [&](int dx, int dy) {
-        return big[static_cast<size_t>(y + 1 + dy) * kShiftSide + static_cast<size_t>(x + 1 + dx)];
+        return big[static_cast<size_t>(y + 1 + dy) * kShiftBig + static_cast<size_t>(x + 1 + dx)];
       };
       const size_t k = static_cast<size_t>(y) * kCols + static_cast<size_t>(x);
       t_[k] = at(0, 0);
@@ -236,10 +242,10 @@ bool ShiftTemplate::set(const uint8_t* image, size_t stride, int width, int heig
       sum_gyt_ += double(gy_[k]) * t_[k];
     }
   }
-  for (int c = 0; c < kCols; ++c) mask_[static_cast<size_t>(c)] = c < kAffineSide ? 1.0F : 0.0F;
+  for (int c = 0; c < kCols; ++c) mask_[static_cast<size_t>(c)] = c < kShiftSide ? 1.0F : 0.0F;
   h(1, 0) = h(0, 1);
-  mean_ = sum_t_ / kAffinePixels;
-  spread_ = std::sqrt(std::max(0.0, sum_tt_ / kAffinePixels - mean_ * mean_));
+  mean_ = sum_t_ / kShiftPixels;
+  spread_ = std::sqrt(std::max(0.0, sum_tt_ / kShiftPixels - mean_ * mean_));
   if (spread_ < 1.0) return false;
   bool ok = false;
   h_inv_ = h.inv(cv::DECOMP_CHOLESKY, &ok);
@@ -249,7 +255,7 @@ bool ShiftTemplate::set(const uint8_t* image, size_t stride, int width, int heig
 AffineResult ShiftTemplate::refine(const uint8_t* image, size_t stride, int width, int height,
                                    const cv::Vec2d& start, int max_iterations, double epsilon_px,
                                    bool scalar) const noexcept {
-  static_assert(kCols == kShiftCols && kAffineSide == kShiftRows);
+  static_assert(kCols == kShiftCols && kShiftSide == kShiftRows);
   AffineResult res;
   res.warp.centre = start;
   ShiftKernelInput in;
@@ -258,15 +264,15 @@ AffineResult ShiftTemplate::refine(const uint8_t* image, size_t stride, int widt
   in.gx = gx_.data();
   in.gy = gy_.data();
   in.mask = mask_.data();
-  constexpr double n = kAffinePixels;
+  constexpr double n = kShiftPixels;
   for (int it = 0; it < max_iterations; ++it) {
     res.iterations = it + 1;
     const cv::Vec2d& c = res.warp.centre;
     const double fx0 = std::floor(c[0]), fy0 = std::floor(c[1]);
     if (!(std::abs(fx0) < 1e6) || !(std::abs(fy0) < 1e6)) return res;
-    const int x0 = static_cast<int>(fx0) - kAffineHalf - 1;  // first tap
-    const int y0 = static_cast<int>(fy0) - kAffineHalf - 1;
-    if (x0 < 0 || y0 < 0 || x0 + kCols + 3 > width || y0 + kAffineSide + 3 > height) return res;
+    const int x0 = static_cast<int>(fx0) - kShiftHalf - 1;  // first tap
+    const int y0 = static_cast<int>(fy0) - kShiftHalf - 1;
+    if (x0 < 0 || y0 < 0 || x0 + kCols + 3 > width || y0 + kShiftSide + 3 > height) return res;
     in.image = image + static_cast<size_t>(y0) * stride + static_cast<size_t>(x0);
     catmullRom(static_cast<float>(c[0] - fx0), in.wx);
     catmullRom(static_cast<float>(c[1] - fy0), in.wy);

@@ -1,6 +1,6 @@
 // The translation refinement's per-iteration kernel (ShiftTemplate::refine), compiled once per
-// Highway target and chosen at run time: a separable Catmull-Rom resampling of the 15x15 patch
-// and the five sums one Gauss-Newton step needs, in one pass over 18 image rows.
+// Highway target and chosen at run time: a separable Catmull-Rom resampling of the 23x23 patch
+// and the five sums one Gauss-Newton step needs, in one pass over 26 image rows.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "shift_simd.cpp"
 #include <hwy/foreach_target.h>  // IWYU pragma: keep
@@ -13,14 +13,14 @@ namespace pulsetrack::vision::HWY_NAMESPACE {
 namespace hn = hwy::HWY_NAMESPACE;
 
 void ShiftSumsImpl(const ShiftKernelInput& in, ShiftSums& out) {
-  const hn::CappedTag<float, kShiftCols> df;  // at most a row of the padded patch per vector
+  const hn::CappedTag<float, 8> df;  // 8 lanes at most: they divide a padded row (24)
   const hn::Rebind<int32_t, decltype(df)> di;
   const hn::Rebind<uint8_t, decltype(df)> d8;
   const size_t lanes = hn::Lanes(df);
   const auto load = [&](const uint8_t* p) {
     return hn::ConvertTo(df, hn::PromoteTo(di, hn::LoadU(d8, p)));
   };
-  // Horizontal pass: the 18 source rows the vertical taps need, 16 columns each.
+  // Horizontal pass: the 26 source rows the vertical taps need, 24 columns each.
   HWY_ALIGN float h[kShiftRows + 3][kShiftCols];
   const auto wx0 = hn::Set(df, in.wx[0]), wx1 = hn::Set(df, in.wx[1]);
   const auto wx2 = hn::Set(df, in.wx[2]), wx3 = hn::Set(df, in.wx[3]);

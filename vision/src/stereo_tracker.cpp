@@ -32,6 +32,7 @@ namespace {
 
 constexpr int kHalf = kAffineHalf;  // 15x15 templates
 constexpr int kSide = kAffineSide;
+constexpr size_t kGainNeighbours = 10;  // the sheen gate's local gain ratio
 
 // NCC of `t` at every template-centre position (x0 + i, y0 + j), 0 <= i < nx, 0 <= j < ny.
 // Windows whose padded reads would leave the image are copied (edge-replicated) into
@@ -105,6 +106,17 @@ bool patchAt(const cv::Mat& img, cv::Vec2d centre, const uint8_t*& top_left) noe
   if (x < 0 || y < 0 || x + kSide > img.cols || y + kSide > img.rows) return false;
   top_left = img.ptr<uint8_t>(y) + x;
   return true;
+}
+
+// Mean grey level of the template-sized patch at `centre` (nearest pixel); -1 off the image.
+double patchMean(const cv::Mat& img, const cv::Vec2d& centre) noexcept {
+  const uint8_t* p = nullptr;
+  if (!patchAt(img, centre, p)) return -1.0;
+  int sum = 0;
+  for (int y = 0; y < kSide; ++y, p += img.step) {
+    for (int x = 0; x < kSide; ++x) sum += p[x];
+  }
+  return static_cast<double>(sum) / (kSide * kSide);
 }
 
 }  // namespace
@@ -367,6 +379,7 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
       if (ar.converged && cv::norm(ar.warp.centre - c.right) < 1.5) {
         c.right = ar.warp.centre;
         c.ncc = ar.ncc;
+        s.stereo_warp = ar.warp.a;
         refined = true;
       }
     }
@@ -423,10 +436,53 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     f.ncc = c.ncc;
     f.nmi = c.nmi;
     f.epipolar_px = c.epipolar_px;
+    s.right_track = s.right0 = c.right;
+    s.left0 = c.left;
     features_.push_back(f);
     states_.push_back(s);
     candidate_of_feature.push_back(candidates_.size() - 1);
   }
+  // Sheen: tissue's diffuse shading is the same from both cameras, so a patch is as bright in
+  // both views up to the cameras' gain ratio, which varies smoothly over the image (vignetting
+  // differs between the lenses): the median ratio of the nearest features. Shine that is not
+  // yet a glint makes one view's patch brighter, differently per view, and moves the match by
+  // a tenth of a pixel or more (0.1-0.2 mm of depth): such features are not tracked.
+  std::vector<double> ratios;
+  ratios.reserve(features_.size());
+  for (const Feature& f : features_) {
+    const double ml = patchMean(left, f.left), mr = patchMean(right, f.right);
+    ratios.push_back(ml > 0.0 && mr > 0.0 ? mr / ml : 0.0);
+  }
+  std::vector<std::pair<double, double>> near;  // (distance, ratio)
+  std::vector<double> local;
+  for (size_t i = 0; i < features_.size(); ++i) {
+    near.clear();
+    for (size_t j = 0; j < features_.size(); ++j) {
+      if (j != i && ratios[j] > 0.0)
+        near.emplace_back(cv::norm(features_[j].left - features_[i].left), ratios[j]);
+    }
+    const size_t k = std::min<size_t>(near.size(), kGainNeighbours);
+    std::partial_sort(near.begin(), near.begin() + static_cast<long>(k), near.end());
+    local.clear();
+    for (size_t j = 0; j < k; ++j) local.push_back(near[j].second);
+    std::nth_element(local.begin(), local.begin() + static_cast<long>(k / 2), local.end());
+    states_[i].view_gain = k > 0 ? local[k / 2] : ratios[i];
+  }
+  size_t kept = 0;
+  for (size_t i = 0; i < features_.size(); ++i) {
+    if (!(states_[i].view_gain > 0.0) ||
+        std::abs(ratios[i] / states_[i].view_gain - 1.0) > config_.max_sheen) {
+      candidates_[candidate_of_feature[i]].status = FeatureStatus::kOccluded;
+      continue;
+    }
+    features_[kept] = features_[i];
+    features_[kept].id = next_id_ + static_cast<int>(kept);
+    states_[kept] = states_[i];
+    candidate_of_feature[kept] = candidate_of_feature[i];
+    ++kept;
+  }
+  features_.resize(kept);
+  states_.resize(kept);
   residuals_.resize(std::max<size_t>(features_.size(), 1));
   surfaceGate();
   // Report the surface gate's verdicts on the candidates too.
@@ -436,6 +492,8 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
   roi_ = roi;
   depth_tolerance_mm_ = depth_tolerance_mm;
   detected_ok_ = okCount();
+  refresh_next_ = 0;
+  tracked_ = false;
   return detected_ok_;
 }
 
@@ -529,16 +587,18 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
   for (size_t i = 0; i < features_.size(); ++i) {
     Feature& f = features_[i];
     State& s = states_[i];
-    const cv::Vec2d prev_left = f.left, prev_right = f.right;
+    const cv::Vec2d prev_left = f.left, prev_right = f.right, prev_track = s.right_track;
     double ncc_l = 0, ncc_r = 0, nmi_l = 0, nmi_r = 0;
     const bool ok_l = trackCamera(0, left, f.left, s, ncc_l, nmi_l);
-    const bool ok_r = trackCamera(1, right, f.right, s, ncc_r, nmi_r);
+    const bool ok_r = trackCamera(1, right, s.right_track, s, ncc_r, nmi_r);
+    f.right = s.right_track + s.stereo_offset;
     f.ncc = std::min(ncc_l, ncc_r);
     f.nmi = std::min(nmi_l, nmi_r);
     const auto keep_last = [&](FeatureStatus why) {
       // An occluded or lost feature stays where it was last seen, so it is found again there.
       f.left = prev_left;
       f.right = prev_right;
+      s.right_track = prev_track;
       f.status = why;
     };
     if (!ok_l || !ok_r) {
@@ -572,6 +632,55 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
     }
   }
   surfaceGate();
+  tracked_ = true;
+}
+
+int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noexcept {
+  const size_t n = features_.size();
+  // The pair the features were detected in has been matched already: its noise counts once.
+  if (!tracked_ || !config_.refinement || config_.stereo_refresh <= 0 || n == 0 ||
+      left.size() != right.size()) {
+    return 0;
+  }
+  int taken = 0;
+  const auto budget = std::min(n, static_cast<size_t>(config_.stereo_refresh));
+  for (size_t visited = 0; visited < budget; ++visited) {
+    const size_t i = refresh_next_ % n;
+    refresh_next_ = (i + 1) % n;
+    Feature& f = features_[i];
+    State& s = states_[i];
+    if (f.status != FeatureStatus::kOk) continue;
+    // The same refinement as the first pair's match, from where the feature is now.
+    AffineResult ar;
+    if (config_.detector == Detector::kDarkBlobs) {
+      if (refresh_shift_.set(left.data, left.step, left.cols, left.rows, f.left))
+        ar = refresh_shift_.refine(right.data, right.step, right.cols, right.rows, f.right);
+    } else if (refresh_affine_.set(left.data, left.step, left.cols, left.rows,
+                                   {f.left, cv::Matx22d::eye()})) {
+      ar = refresh_affine_.refine(right.data, right.step, right.cols, right.rows,
+                                  {f.right, s.stereo_warp}, 20, 0.01);
+    }
+    // Gated as the first match was; a glint in either view or a match far from the corrected
+    // track is not averaged in.
+    const double ml = patchMean(left, f.left), mr = patchMean(right, ar.warp.centre);
+    if (!ar.converged || cv::norm(ar.warp.centre - f.right) > 0.5 || !(ml > 0.0) ||
+        std::abs(mr / ml / s.view_gain - 1.0) > config_.max_sheen ||
+        ar.ncc < std::max(config_.min_ncc, config_.min_stereo_ncc) ||
+        neighbourhoodMax(right, ar.warp.centre, config_.specular_margin_px) >=
+            config_.specular_threshold ||
+        neighbourhoodMax(left, f.left, config_.specular_margin_px) >= config_.specular_threshold) {
+      continue;
+    }
+    const int window = std::max(1, config_.stereo_refresh_window);
+    s.stereo_samples = std::min(s.stereo_samples + 1, window);
+    s.stereo_offset += (ar.warp.centre - s.right_track - s.stereo_offset) / s.stereo_samples;
+    if (config_.detector != Detector::kDarkBlobs) s.stereo_warp = ar.warp.a;
+    // The reference point takes the same correction, so that displacements do not see it.
+    const Triangulation t0 = triangulate(rig_, s.left0, s.right0 + s.stereo_offset);
+    if (t0.ok) f.point0 = t0.point;
+    ++taken;
+  }
+  return taken;
 }
 
 void StereoTracker::surfaceGate() noexcept {

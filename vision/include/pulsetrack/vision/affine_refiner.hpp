@@ -19,6 +19,13 @@ namespace pulsetrack::vision {
 inline constexpr int kAffineHalf = 7;  // 15x15 templates
 inline constexpr int kAffineSide = 2 * kAffineHalf + 1;
 inline constexpr int kAffinePixels = kAffineSide * kAffineSide;
+// Video matching's translation refinement works on a larger patch than the 15x15 NCC template:
+// its position noise falls with the patch's gradient energy (23x23: about 0.65x of 15x15's), and
+// a camera's view of a patch barely changes shape between frames, so the size adds no model error
+// (the stereo match's affine model does: there the larger patch's bias outweighs its lower noise).
+inline constexpr int kShiftHalf = 11;
+inline constexpr int kShiftSide = 2 * kShiftHalf + 1;
+inline constexpr int kShiftPixels = kShiftSide * kShiftSide;
 
 // Warp: x' = centre + A x, x in template coordinates [-7, 7]^2, A = [a00 a01; a10 a11].
 struct AffineWarp {
@@ -78,8 +85,8 @@ class ShiftTemplate {
                                     double epsilon_px = 2e-3, bool scalar = false) const noexcept;
 
  private:
-  static constexpr int kCols = 16;  // rows padded to 16 floats, the pad weighs nothing
-  static constexpr int kPadded = kAffineSide * kCols;
+  static constexpr int kCols = 24;  // rows padded to 24 floats, the pad weighs nothing
+  static constexpr int kPadded = kShiftSide * kCols;
   std::array<float, kPadded> t_{}, gx_{}, gy_{};
   std::array<float, kCols> mask_{};
   cv::Matx22d h_inv_;

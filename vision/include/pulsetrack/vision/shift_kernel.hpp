@@ -9,8 +9,8 @@
 
 namespace pulsetrack::vision {
 
-inline constexpr int kShiftRows = kAffineSide;  // 15 rows of the patch
-inline constexpr int kShiftCols = 16;           // 15 columns padded to 16 (the pad weighs 0)
+inline constexpr int kShiftRows = kShiftSide;  // 23 rows of the patch
+inline constexpr int kShiftCols = 24;          // 23 columns padded to 24 (the pad weighs 0)
 
 struct ShiftKernelInput {
   const uint8_t* image = nullptr;  // the first tap: (kShiftRows + 3) rows, kShiftCols + 3 columns

@@ -68,6 +68,9 @@ struct TrackerConfig {
   // The stereo match after the affine refinement: the two views of a feature in sheen (below
   // the glint threshold, but different per view) agree less than tissue does.
   double min_stereo_ncc = 0.94;
+  // A patch's brightness may differ between the views by at most this fraction beyond the
+  // cameras' gain ratio: more is view-dependent shine (sheen), which moves the stereo match.
+  double max_sheen = 0.02;
   double min_nmi = 0.25;
   double max_epipolar_px = 1.0;
   double max_surface_mm = 2.0;      // distance to the fitted parabola
@@ -79,6 +82,14 @@ struct TrackerConfig {
   // Re-detection is due when fewer than this fraction of the features found at the last
   // detection are ok (needsRedetection(); the caller runs redetect() off the per-frame path).
   double redetect_fraction = 0.5;
+  // Stereo refresh (refreshStereo()): features whose stereo match is measured again per call.
+  // The first frame's stereo match carries that pair's sensor noise for good (0.1-0.2 px of
+  // disparity on weak texture: 0.06-0.12 mm of depth); matching again in later pairs, whose noise
+  // is fresh, and averaging takes it out. 0: off.
+  int stereo_refresh = 25;
+  // The average runs over at most this many matches per feature, then forgets slowly (the
+  // surface's shape in the two views changes over minutes of brain shift).
+  int stereo_refresh_window = 64;
 };
 
 struct Roi {
@@ -125,6 +136,14 @@ class StereoTracker {
 
   // Per frame: the real-time path.
   void track(const cv::Mat& left, const cv::Mat& right) noexcept;
+  // After track() has been published (it adds no latency): matches up to
+  // config.stereo_refresh features (round robin, ok ones) between this left and right image
+  // again, with the affine refinement, and folds each into the feature's running stereo
+  // correction; track() applies it from the next pair on, to the position and to the reference
+  // point0 alike (displacements stay consistent). Nothing after a detection until track() has
+  // run (that pair's match is in already). No allocation, lock or exception. Returns how many
+  // matches were taken.
+  int refreshStereo(const cv::Mat& left, const cv::Mat& right) noexcept;
 
   [[nodiscard]] std::span<const Feature> features() const {
     return {features_.data(), features_.size()};
@@ -137,6 +156,13 @@ class StereoTracker {
     ShiftTemplate shift[2];
     NmiTemplate nmi[2];                // the frame-0 templates, for NMI
     double ncc_level[2] = {0.0, 0.0};  // running NCC while ok; 0 before the first frame
+    // The right camera's video track (the reported right position adds the stereo correction).
+    cv::Vec2d right_track;
+    cv::Vec2d left0, right0;                       // the first pair's match
+    cv::Vec2d stereo_offset{0.0, 0.0};             // mean (stereo match - right_track)
+    int stereo_samples = 1;                        // the first pair's match counts as one
+    cv::Matx22d stereo_warp = cv::Matx22d::eye();  // right offset per left offset (affine)
+    double view_gain = 1.0;  // right / left brightness here: the nearest features' median
   };
   bool searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s, cv::Vec2d& pos,
                     double& ncc) noexcept;
@@ -156,6 +182,10 @@ class StereoTracker {
   std::vector<float> scores_;      // sized once: (2R+1)^2
   std::vector<uint8_t> scratch_;   // a padded copy of a window near the image border
   std::vector<double> residuals_;  // surface gate, sized to max_features
+  AffineTemplate refresh_affine_;  // refreshStereo()'s scratch templates
+  ShiftTemplate refresh_shift_;
+  size_t refresh_next_ = 0;
+  bool tracked_ = false;  // track() ran since the last detection
   Roi roi_;
   double depth_tolerance_mm_ = 0.0;
   int next_id_ = 0;
