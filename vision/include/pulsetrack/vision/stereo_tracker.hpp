@@ -6,11 +6,14 @@
 //   neighbourhood" mask (vessels) -> Harris corners on a grid of sub-regions (k per cell, a
 //   ceiling, the sensitivity lowered until the ceiling is met) -> stereo match in the search
 //   box built from the ROI pair and the depth tolerance (NCC, quadratic peak, then an affine
-//   refinement for the two views' different foreshortening) -> gates -> triangulation.
+//   refinement for the two views' different foreshortening) -> gates (incl. sheen) ->
+//   triangulation.
 // track() (per frame: no allocation, no lock, no exception):
 //   each camera: NCC around the last position against the frame-0 template, quadratic peak,
-//   translation refinement against the frame-0 template (no drift) -> gates (NCC, NMI, epipolar,
-//   distance to a parabolic surface fitted to the cloud) -> LM triangulation.
+//   translation refinement on 23x23 against the frame-0 patch (no drift) -> gates (NCC, NMI,
+//   epipolar, distance to a parabolic surface fitted to the cloud) -> LM triangulation.
+// refreshStereo() (per frame, after the result is out): some features' stereo match again in
+//   the current pair, averaged into a per-feature correction (the first pair's noise out).
 // A rejected feature keeps its id and its reason, and comes back when it passes again.
 
 #include <array>
