@@ -108,15 +108,19 @@ bool patchAt(const cv::Mat& img, cv::Vec2d centre, const uint8_t*& top_left) noe
   return true;
 }
 
-// Mean grey level of the template-sized patch at `centre` (nearest pixel); -1 off the image.
-double patchMean(const cv::Mat& img, const cv::Vec2d& centre) noexcept {
-  const uint8_t* p = nullptr;
-  if (!patchAt(img, centre, p)) return -1.0;
+// Mean grey level of the square of side 2 half + 1 at `centre` (nearest pixel); -1 when it
+// leaves the image.
+double regionMean(const cv::Mat& img, const cv::Vec2d& centre, int half) noexcept {
+  const int x0 = static_cast<int>(std::lround(centre[0])) - half;
+  const int y0 = static_cast<int>(std::lround(centre[1])) - half;
+  const int side = 2 * half + 1;
+  if (x0 < 0 || y0 < 0 || x0 + side > img.cols || y0 + side > img.rows) return -1.0;
   int sum = 0;
-  for (int y = 0; y < kSide; ++y, p += img.step) {
-    for (int x = 0; x < kSide; ++x) sum += p[x];
+  for (int y = 0; y < side; ++y) {
+    const uint8_t* p = img.ptr<uint8_t>(y0 + y) + x0;
+    for (int x = 0; x < side; ++x) sum += p[x];
   }
-  return static_cast<double>(sum) / (kSide * kSide);
+  return static_cast<double>(sum) / (side * side);
 }
 
 }  // namespace
@@ -450,7 +454,8 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
   std::vector<double> ratios;
   ratios.reserve(features_.size());
   for (const Feature& f : features_) {
-    const double ml = patchMean(left, f.left), mr = patchMean(right, f.right);
+    const int half = kHalf + config_.specular_margin_px;  // sheen beside the patch pulls too
+    const double ml = regionMean(left, f.left, half), mr = regionMean(right, f.right, half);
     ratios.push_back(ml > 0.0 && mr > 0.0 ? mr / ml : 0.0);
   }
   std::vector<std::pair<double, double>> near;  // (distance, ratio)
@@ -662,7 +667,8 @@ int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noex
     }
     // Gated as the first match was; a glint in either view or a match far from the corrected
     // track is not averaged in.
-    const double ml = patchMean(left, f.left), mr = patchMean(right, ar.warp.centre);
+    const int half = kHalf + config_.specular_margin_px;
+    const double ml = regionMean(left, f.left, half), mr = regionMean(right, ar.warp.centre, half);
     if (!ar.converged || cv::norm(ar.warp.centre - f.right) > 0.5 || !(ml > 0.0) ||
         std::abs(mr / ml / s.view_gain - 1.0) > config_.max_sheen ||
         ar.ncc < std::max(config_.min_ncc, config_.min_stereo_ncc) ||

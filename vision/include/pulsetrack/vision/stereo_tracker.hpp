@@ -71,8 +71,9 @@ struct TrackerConfig {
   // The stereo match after the affine refinement: the two views of a feature in sheen (below
   // the glint threshold, but different per view) agree less than tissue does.
   double min_stereo_ncc = 0.94;
-  // A patch's brightness may differ between the views by at most this fraction beyond the
-  // cameras' gain ratio: more is view-dependent shine (sheen), which moves the stereo match.
+  // A patch's brightness (with specular_margin_px around it) may differ between the views by at
+  // most this fraction beyond the cameras' local gain ratio: more is view-dependent shine
+  // (sheen), which moves the stereo match.
   double max_sheen = 0.02;
   double min_nmi = 0.25;
   double max_epipolar_px = 1.0;
