@@ -665,13 +665,15 @@ int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noex
       ar = refresh_affine_.refine(right.data, right.step, right.cols, right.rows,
                                   {f.right, s.stereo_warp}, 20, 0.01);
     }
-    // Gated as the first match was; a glint in either view or a match far from the corrected
-    // track is not averaged in.
+    // Gated as the first match was; a match far from the corrected track, sheen or a glint in
+    // either view is not averaged in.
+    if (!ar.converged || cv::norm(ar.warp.centre - f.right) > 0.5 ||
+        ar.ncc < std::max(config_.min_ncc, config_.min_stereo_ncc)) {
+      continue;
+    }
     const int half = kHalf + config_.specular_margin_px;
     const double ml = regionMean(left, f.left, half), mr = regionMean(right, ar.warp.centre, half);
-    if (!ar.converged || cv::norm(ar.warp.centre - f.right) > 0.5 || !(ml > 0.0) ||
-        std::abs(mr / ml / s.view_gain - 1.0) > config_.max_sheen ||
-        ar.ncc < std::max(config_.min_ncc, config_.min_stereo_ncc) ||
+    if (!(ml > 0.0) || std::abs(mr / ml / s.view_gain - 1.0) > config_.max_sheen ||
         neighbourhoodMax(right, ar.warp.centre, config_.specular_margin_px) >=
             config_.specular_threshold ||
         neighbourhoodMax(left, f.left, config_.specular_margin_px) >= config_.specular_threshold) {
