@@ -160,7 +160,6 @@ vision::Result<MotionAnalysis> analyzeMotion(const std::vector<record::TrackRow>
   std::map<int, std::pair<double, Vec3>> previous;  // feature -> (t, position) at its last ok frame
   std::vector<double> speeds;
   double prev_t = std::nan("");
-  std::vector<double> steps;
   for (const auto& [frame, f] : frames) {
     if (f.ok.empty()) continue;
     Vec3 sum = Vec3::Zero();
@@ -190,17 +189,40 @@ vision::Result<MotionAnalysis> analyzeMotion(const std::vector<record::TrackRow>
         speeds.push_back((p - pv->second.second).norm() / (f.t - prev_t));
       previous[r->id] = {f.t, p};
     }
-    if (!std::isnan(prev_t)) steps.push_back(f.t - prev_t);
     prev_t = f.t;
     last = d;
     ts.push_back(f.t);
     disp.push_back(d);
   }
+  return analyzeSeries(ts, disp, static_cast<int>(ref.size()), speeds, options);
+}
+
+vision::Result<MotionAnalysis> analyzeMotion(const std::vector<record::DeformationRow>& rows,
+                                             const MotionOptions& options) {
+  std::vector<double> ts;
+  std::vector<Vec3> disp;
+  int features = 0;
+  for (const record::DeformationRow& r : rows) {
+    if (!ts.empty() && !(r.t > ts.back()))
+      return fail(fmt::format("frame {}: the deformation's timestamps do not increase", r.frame));
+    ts.push_back(r.t);
+    disp.emplace_back(r.dx, r.dy, r.dz);
+    features = std::max(features, r.total);
+  }
+  return analyzeSeries(ts, disp, features, {}, options);
+}
+
+vision::Result<MotionAnalysis> analyzeSeries(const std::vector<double>& ts,
+                                             const std::vector<Vec3>& disp, int features,
+                                             const std::vector<double>& speeds,
+                                             const MotionOptions& options) {
   if (ts.size() < 16)
     return fail(fmt::format(
         "{} frames with ok features: too few for a motion analysis (16 at least)", ts.size()));
+  std::vector<double> steps;
+  for (size_t i = 1; i < ts.size(); ++i) steps.push_back(ts[i] - ts[i - 1]);
   MotionAnalysis a;
-  a.features = static_cast<int>(ref.size());
+  a.features = features;
   a.feature_speed_mm_s = summarize(speeds);
   a.period_s = quantile(steps, 0.5);
   if (!(a.period_s > 0)) return fail("the track's timestamps do not increase");

@@ -76,7 +76,13 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
   if (const toml::table* t = r.table("dds")) {
     TableReader d(*t, file, "dds", &error);
     c.domain_id = static_cast<uint32_t>(d.integer("domain_id", 0, 0, 232));
+    c.ros_namespace = d.string("namespace", "");
     d.finish();
+    auto topics = dds::Topics::forNamespace(c.ros_namespace);
+    if (!topics && error.empty())
+      error = fmt::format("{}: [dds] namespace: {}", file, topics.error().message);
+    else if (topics)
+      c.topics = *topics;
   }
   if (const toml::table* t = r.table("source")) {
     TableReader s(*t, file, "source", &error);
@@ -94,6 +100,7 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     c.pace = pace == "fast" ? Pace::kFast : pace == "rate" ? Pace::kRate : Pace::kRealtime;
     c.preload = s.boolean("preload", c.preload);
     c.loop = s.boolean("loop", c.loop);
+    c.lossless = s.boolean("lossless", c.lossless);
     const std::string rig = s.string("rig", "");
     if (!rig.empty()) c.rig = path.parent_path() / rig;
     c.left_camera.device = "/dev/video0";
@@ -128,6 +135,8 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
             file);
     }
     s.finish();
+    if (c.lossless && c.source != SourceKind::kReplay && error.empty())
+      error = fmt::format("{}: source.lossless: only a replay can wait for the pipeline", file);
     if (c.source == SourceKind::kReplay && c.recording.empty() && error.empty())
       error = fmt::format("{}: source.recording is required with kind = \"replay\"", file);
   } else {
@@ -157,6 +166,8 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     c.roi.left = rect(s, "roi_left", c.roi.left, error, file);
     c.roi.right = rect(s, "roi_right", c.roi.right, error, file);
     c.depth_tolerance_mm = s.number("depth_tolerance_mm", c.depth_tolerance_mm, 0.1, 500.0);
+    c.retry_interval_s = s.number("retry_interval_s", c.retry_interval_s, 0.05, 3600.0);
+    c.velocity_window_s = s.number("velocity_window_s", c.velocity_window_s, 0.0, 10.0);
     c.tracker.max_features = s.integer("max_features", c.tracker.max_features, 1, 1000);
     c.tracker.detector = s.string("detector", "harris", {"harris", "blobs"}) == "blobs"
                              ? vision::Detector::kDarkBlobs

@@ -9,6 +9,7 @@
 #include <thread>
 
 #include "pulsetrack/daemon/config.hpp"
+#include "pulsetrack/daemon/log.hpp"
 #include "pulsetrack/daemon/notify.hpp"
 #include "pulsetrack/daemon/pipeline.hpp"
 #include "pulsetrack/drivers/libcamera_source.hpp"
@@ -17,6 +18,7 @@
 #include "pulsetrack/record/live_recorder.hpp"
 #include "pulsetrack/sim/scene.hpp"
 #include "pulsetrack/vision/stereo_rig.hpp"
+#include "pulsetrack/vision/tracking_session.hpp"
 
 namespace {
 volatile std::sig_atomic_t g_stop = 0;
@@ -47,7 +49,7 @@ int run(int argc, char** argv) {
   if (list_cameras) {
     auto cams = drivers::listLibcameraCameras();
     if (!cams) {
-      std::fprintf(stderr, "pulsetrackd: %s\n", cams.error().message.c_str());
+      daemon::log::get("source").error("{}", cams.error().message);
       return 1;
     }
     for (const auto& c : *cams) std::printf("%s  %s\n", c.id.c_str(), c.model.c_str());
@@ -55,9 +57,13 @@ int run(int argc, char** argv) {
     return 0;
   }
 
+  daemon::log::setup(check);
+  auto& log_config = daemon::log::get("config");
+  auto& log_source = daemon::log::get("source");
+  auto& log_pipeline = daemon::log::get("pipeline");
   auto config = daemon::loadDaemonConfig(config_path);
   if (!config) {
-    std::fprintf(stderr, "pulsetrackd: %s\n", config.error().message.c_str());
+    log_config.error("{}", config.error().message);
     return 1;
   }
   std::unique_ptr<drivers::TriggerBox> trigger;  // outlives the source that asks it
@@ -65,12 +71,12 @@ int run(int argc, char** argv) {
   if (config->source == daemon::SourceKind::kSim) {
     auto scene = sim::loadScene(config->scene);
     if (!scene) {
-      std::fprintf(stderr, "pulsetrackd: %s\n", scene.error().message.c_str());
+      log_config.error("{}", scene.error().message);
       return 1;
     }
     auto rig = vision::loadRig(scene->rig_path);
     if (!rig) {
-      std::fprintf(stderr, "pulsetrackd: %s\n", rig.error().message.c_str());
+      log_config.error("{}", rig.error().message);
       return 1;
     }
     scene->supersample = 1;  // live rendering
@@ -79,14 +85,14 @@ int run(int argc, char** argv) {
              config->source == daemon::SourceKind::kLibcamera) {
     auto rig = vision::loadRig(config->rig);
     if (!rig) {
-      std::fprintf(stderr, "pulsetrackd: %s\n", rig.error().message.c_str());
+      log_config.error("{}", rig.error().message);
       return 1;
     }
     if (config->trigger_box && !check) {
       auto hid = drivers::openHidDevice(config->trigger_vendor, config->trigger_product,
                                         config->trigger_serial);
       if (!hid) {
-        std::fprintf(stderr, "pulsetrackd: %s\n", hid.error().message.c_str());
+        log_source.error("{}", hid.error().message);
         return 1;
       }
       trigger = std::make_unique<drivers::TriggerBox>(
@@ -118,19 +124,26 @@ int run(int argc, char** argv) {
     o.preload = config->preload;
     auto r = drivers::makeReplaySource(config->recording, o);
     if (!r) {
-      std::fprintf(stderr, "pulsetrackd: %s\n", r.error().message.c_str());
+      log_source.error("{}", r.error().message);
       return 1;
     }
     source = std::move(*r);
   }
+  if (auto roi =
+          vision::TrackingSession::checkRoi(source->rig(), config->roi, config->depth_tolerance_mm);
+      !roi) {
+    log_config.error("{}: [tracker] {}", config_path, roi.error().message);
+    return 1;
+  }
   if (check) {
-    std::printf("%s: ok (source %s, rig %s, DDS domain %u)\n", config_path.c_str(),
-                source->name().c_str(), config->rig_id.c_str(), config->domain_id);
+    std::printf("%s: ok (source %s, rig %s, DDS domain %u, topics %s)\n", config_path.c_str(),
+                source->name().c_str(), config->rig_id.c_str(), config->domain_id,
+                config->topics.features.c_str());
     return 0;
   }
   auto participant = dds::Participant::create(config->domain_id);
   if (!participant) {
-    std::fprintf(stderr, "pulsetrackd: %s\n", participant.error().message.c_str());
+    daemon::log::get("dds").error("{}", participant.error().message);
     return 1;
   }
   std::signal(SIGTERM, onSignal);
@@ -140,7 +153,7 @@ int run(int argc, char** argv) {
   std::signal(SIGXFSZ, SIG_IGN);
   if (trigger) {
     if (auto ok = trigger->start(); !ok) {
-      std::fprintf(stderr, "pulsetrackd: %s\n", ok.error().message.c_str());
+      log_source.error("{}", ok.error().message);
       return 1;
     }
   }
@@ -158,22 +171,21 @@ int run(int argc, char** argv) {
     auto r = record::LiveRecorder::start(o, source->rig());
     if (!r) {
       // Tracking matters more than the recording: say it and run on.
-      std::fprintf(stderr, "pulsetrackd: warning: not recording: %s\n", r.error().message.c_str());
+      daemon::log::get("recorder").warn("not recording: {}", r.error().message);
     } else {
       recorder = std::move(*r);
-      std::fprintf(stderr, "pulsetrackd: recording to %s\n", dir.c_str());
+      daemon::log::get("recorder").info("recording to {}", dir.string());
     }
   }
   daemon::Pipeline pipeline(*config, std::move(source), *participant, recorder.get());
   auto started = pipeline.start();
   if (!started) {
-    std::fprintf(stderr, "pulsetrackd: %s\n", started.error().message.c_str());
+    log_pipeline.error("{}", started.error().message);
     return 1;
   }
-  for (const std::string& w : *started)
-    std::fprintf(stderr, "pulsetrackd: warning: %s\n", w.c_str());
-  std::fprintf(stderr, "pulsetrackd: running, rig %s, DDS domain %u\n", config->rig_id.c_str(),
-               config->domain_id);
+  for (const std::string& w : *started) log_pipeline.warn("{}", w);
+  log_pipeline.info("running, rig {}, DDS domain {}, topics {}", config->rig_id, config->domain_id,
+                    config->topics.features);
   const daemon::Notifier notifier;
   const auto period = std::chrono::milliseconds(config->health_period_ms);
   const auto t0 = std::chrono::steady_clock::now();
@@ -187,7 +199,7 @@ int run(int argc, char** argv) {
     }
     const daemon::State s = pipeline.health(notifier);
     if (s != last) {
-      std::fprintf(stderr, "pulsetrackd: state %s\n", daemon::toString(s));
+      log_pipeline.info("state {}", daemon::toString(s));
       last = s;
     }
     if (run_for > 0 &&
@@ -199,14 +211,12 @@ int run(int argc, char** argv) {
   if (recorder) {
     recorder->stop();
     const auto st = recorder->status();
-    std::fprintf(stderr, "pulsetrackd: recorded %llu frames (%llu skipped: disk behind)%s%s\n",
-                 static_cast<unsigned long long>(st.written),
-                 static_cast<unsigned long long>(st.thinned),
-                 st.error.empty() ? "" : "; stopped: ", st.error.c_str());
+    daemon::log::get("recorder")
+        .info("recorded {} frames ({} skipped: disk behind){}{}", st.written, st.thinned,
+              st.error.empty() ? "" : "; stopped: ", st.error);
   }
   if (trigger) trigger->stop();
-  std::fprintf(stderr, "pulsetrackd: stopped after %llu tracked pairs\n",
-               static_cast<unsigned long long>(pipeline.tracked()));
+  log_pipeline.info("stopped after {} tracked pairs", pipeline.tracked());
   return 0;
 }
 
@@ -216,7 +226,7 @@ int main(int argc, char** argv) {
   try {
     return run(argc, argv);
   } catch (const std::exception& e) {
-    std::fprintf(stderr, "pulsetrackd: fatal: %s\n", e.what());
+    pulsetrack::daemon::log::get("pipeline").critical("fatal: {}", e.what());
   }
   return 1;
 }

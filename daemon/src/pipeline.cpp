@@ -5,6 +5,7 @@
 #include <cmath>
 #include <thread>
 
+#include "pulsetrack/daemon/log.hpp"
 #include "pulsetrack/rt/thread_policy.hpp"
 
 namespace pulsetrack::daemon {
@@ -73,17 +74,18 @@ Pipeline::Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSo
 Pipeline::~Pipeline() { stop(); }
 
 vision::Result<std::vector<std::string>> Pipeline::start() {
+  const dds::Topics& topics = config_.topics;
   auto fw =
-      dds::Writer::create(participant_, dds::kFeaturesTopic,
+      dds::Writer::create(participant_, topics.features.c_str(),
                           &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
   if (!fw) return std::unexpected(fw.error());
   auto dw =
-      dds::Writer::create(participant_, dds::kDeformationTopic,
+      dds::Writer::create(participant_, topics.deformation.c_str(),
                           &pulsetrack_msgs_msg_dds__Deformation__desc, dds::Profile::kSensorData);
   if (!dw) return std::unexpected(dw.error());
   auto hw =
-      dds::Writer::create(participant_, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
-                          dds::Profile::kTransientLocal);
+      dds::Writer::create(participant_, topics.health.c_str(),
+                          &pulsetrack_msgs_msg_dds__Health__desc, dds::Profile::kTransientLocal);
   if (!hw) return std::unexpected(hw.error());
   features_writer_ = std::move(*fw);
   deformation_writer_ = std::move(*dw);
@@ -122,6 +124,8 @@ void Pipeline::stop() {
   frames_seq_.notify_all();
   results_seq_.fetch_add(1);
   results_seq_.notify_all();
+  consumed_.fetch_add(1);
+  consumed_.notify_all();
   for (std::thread* t : {&capture_, &track_, &publish_, &command_}) {
     if (t->joinable()) t->join();
   }
@@ -147,6 +151,13 @@ void Pipeline::captureLoop() {
       frames_.publish();
       last_frame_ns_.store(now, std::memory_order_relaxed);
       faulted = false;
+      ++handed_;
+      if (config_.lossless) {  // replay: wait until the pair is through (none replaced)
+        frames_seq_.fetch_add(1, std::memory_order_release);
+        frames_seq_.notify_one();
+        for (uint64_t c = consumed_.load(); c < handed_ && running_.load(); c = consumed_.load())
+          consumed_.wait(c);
+      }
     } else if (n == drivers::Next::kFault || n == drivers::Next::kEnd) {
       if (!faulted) {  // said once per fault, on its edge (the health thread reports it)
         source_errors_.back() =
@@ -162,11 +173,16 @@ void Pipeline::captureLoop() {
 }
 
 void Pipeline::trackLoop() {
-  vision::StereoTracker tracker(source_->rig(), config_.tracker);
-  bool initialized = false;
-  uint64_t seen = 0;
-  vision::Roi roi = config_.roi;
-  double depth = config_.depth_tolerance_mm;
+  vision::SessionConfig sc;
+  sc.tracker = config_.tracker;
+  sc.roi = config_.roi;
+  sc.depth_tolerance_mm = config_.depth_tolerance_mm;
+  sc.retry_interval_s = config_.retry_interval_s;
+  sc.velocity_window_s = config_.velocity_window_s;
+  vision::TrackingSession session(source_->rig(), sc);
+  uint64_t seen = 0, reason_seen = UINT64_MAX;
+  bool stopped = false;
+  auto last_state = static_cast<vision::SessionState>(0xff);
   const auto deadline_ns = static_cast<int64_t>(config_.deadline_ms * 1e6);
   while (running_.load(std::memory_order_relaxed)) {
     track_beat_.beat();
@@ -185,44 +201,49 @@ void Pipeline::trackLoop() {
     }
     if (const int64_t stall = stall_ms_.exchange(0); stall > 0)
       std::this_thread::sleep_for(std::chrono::milliseconds(stall));
-    if (const RoiRequest* req = roi_requests_.take()) {
-      roi = req->roi;
-      depth = req->depth_mm;
-      initialized = false;  // detect in the new ROI
+    // Commands, between pairs (the command thread checked them).
+    if (const RoiRequest* req = roi_requests_.take()) session.setRoi(req->roi, req->depth_mm);
+    if (const bool pause = paused_.load(); pause != stopped) {
+      stopped = pause;
+      if (pause)
+        session.stop();
+      else
+        session.start();
     }
-    if (paused_.load()) {
-      initialized = false;  // start detects afresh
+    if (redetect_requested_.exchange(false)) session.requestRedetect();
+    const vision::PairResult& pr =
+        session.process(f->pair.left, f->pair.right, f->pair.trigger_seq, f->pair.t_left_ns);
+    processed_.fetch_add(1);
+    if (session.reasonSerial() != reason_seen || pr.state != last_state) {
+      reason_seen = session.reasonSerial();
+      last_state = pr.state;
+      TrackingText& t = tracking_text_.back();
+      const std::string_view why = session.reason();
+      t.size = std::min(why.size(), t.text.size());
+      std::copy_n(why.data(), t.size, t.text.data());
+      t.state = pr.state;
+      tracking_text_.publish();
+    }
+    if (pr.state != vision::SessionState::kTracking) {  // nothing to publish (health says why)
+      ok_features_.store(0);
+      total_features_.store(0);
+      consumed_.fetch_add(1);
+      consumed_.notify_one();
       wake_publish();
       continue;
     }
     TrackResult& r = results_.back();
-    r.redetected = false;
-    if (initialized && redetect_requested_.exchange(false)) initialized = false;
-    if (!initialized) {
-      auto ok = tracker.initialize(f->pair.left, f->pair.right, roi, depth);
-      initialized = ok.has_value() && *ok > 0;
-      if (!initialized) {  // no features (health says so): try the next pair
-        wake_publish();
-        continue;
-      }
-      r.redetected = true;
-    } else {
-      tracker.track(f->pair.left, f->pair.right);
-      if (tracker.needsRedetection()) {
-        r.redetected = tracker.redetect(f->pair.left, f->pair.right).has_value();
-      }
-    }
     const int64_t done = rt::monotonicNs();
-    const auto feats = tracker.features();
-    r.features.assign(feats.begin(), feats.end());  // within the reserved capacity
-    r.ok = tracker.okCount();
+    r.features.assign(pr.features.begin(), pr.features.end());  // within the reserved capacity
+    r.deformation = pr.deformation;
+    r.detected = pr.detected;
     r.trigger_seq = f->pair.trigger_seq;
     r.t_ns = f->pair.t_left_ns;
     r.captured_ns = f->captured_ns;
     r.tracked_ns = done;
     track_lat_.record(static_cast<uint64_t>(done - f->captured_ns));
     if (done - f->captured_ns > deadline_ns) deadline_misses_.fetch_add(1);
-    ok_features_.store(r.ok);
+    ok_features_.store(pr.deformation.ok);
     total_features_.store(static_cast<int>(r.features.size()));
     results_.publish();
     tracked_.fetch_add(1);
@@ -230,7 +251,7 @@ void Pipeline::trackLoop() {
     results_seq_.notify_one();
     // The pair's result is on its way: now, off the latency, some features' stereo match is
     // taken again (a fixed number per pair, so the stage's time stays bounded).
-    tracker.refreshStereo(f->pair.left, f->pair.right);
+    session.afterPublish(f->pair.left, f->pair.right);
   }
 }
 
@@ -246,87 +267,70 @@ void Pipeline::publishLoop() {
   pulsetrack_msgs_msg_dds__Deformation_ d{};
   d.header.frame_id = const_cast<char*>(kFrameId);
   d.rig_id = config_.rig_id.data();
-  cv::Vec3d offset(0, 0, 0), last_disp(0, 0, 0);
-  bool have_reference = false;
-  int64_t last_t = 0;
   uint64_t seen = 0;
   while (running_.load(std::memory_order_relaxed)) {
     publish_beat_.beat();
     if (!waitFor(results_seq_, seen, running_)) break;
     TrackResult* r = results_.take();
     if (r == nullptr) continue;
+    // Stamps: the pair's exposure on the system clock.
+    const auto stamp = dds::stamp(clock_.toRealtime(r->t_ns));
     const size_t n = std::min(r->features.size(), list.size());
-    cv::Vec3d sum(0, 0, 0), moved(0, 0, 0);
-    int ok = 0;
     for (size_t i = 0; i < n; ++i) {
       const vision::Feature& f = r->features[i];
       list[i].id = f.id;
       list[i].status = static_cast<uint8_t>(f.status);
+      list[i].reason = static_cast<uint8_t>(f.gate);
       list[i].position = point(f.point);
       list[i].displacement = vec(f.point - f.point0);
       list[i].ncc = static_cast<float>(f.ncc);
       list[i].nmi = static_cast<float>(f.nmi);
-      if (f.status == vision::FeatureStatus::kOk) {
-        sum += f.point;
-        moved += f.point - f.point0;
-        ++ok;
-      }
     }
     fs.features._length = static_cast<uint32_t>(n);
     fs.frame = r->trigger_seq;
-    fs.header.stamp = dds::stamp(r->t_ns);
+    fs.header.stamp = stamp;
     (void)features_writer_.write(&fs);
-    if (ok > 0) {
-      const cv::Vec3d centroid = sum / ok;
-      // The displacement is the mean of the ok features' own displacements, not the centroid's
-      // change: that would jump whenever features drop out (an instrument) or come back. New
-      // features (re-detection) start at zero: the displacement continues from where it was.
-      if (!have_reference || r->redetected) {
-        offset = have_reference ? last_disp : cv::Vec3d(0, 0, 0);
-        have_reference = true;
-      }
-      const cv::Vec3d disp = moved / ok + offset;
-      const double dt = last_t != 0 ? static_cast<double>(r->t_ns - last_t) * 1e-9 : 0.0;
-      const cv::Vec3d vel = dt > 0 ? (disp - last_disp) / dt : cv::Vec3d(0, 0, 0);
+    const vision::Deformation& def = r->deformation;
+    if (def.valid) {
       d.frame = r->trigger_seq;
-      d.header.stamp = dds::stamp(r->t_ns);
-      d.centroid = point(centroid);
-      d.displacement = vec(disp);
-      d.velocity = vec(vel);
-      d.features_ok = static_cast<uint32_t>(ok);
-      d.features_total = static_cast<uint32_t>(n);
+      d.header.stamp = stamp;
+      d.centroid = point(def.centroid);
+      d.displacement = vec(def.displacement);
+      d.velocity = vec(def.velocity);
+      d.velocity_delay = def.velocity_delay_s;
+      d.displacement_sigma = def.displacement_sigma_mm * 1e-3;
+      d.velocity_sigma = def.velocity_sigma_mm_s * 1e-3;
+      d.features_ok = static_cast<uint32_t>(def.ok);
+      d.features_total = static_cast<uint32_t>(def.total);
+      d.detections = def.detections;
+      d.continuous = def.continuous;
       (void)deformation_writer_.write(&d);
-      last_disp = disp;
-      last_t = r->t_ns;
     }
     publish_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - r->tracked_ns));
+    consumed_.fetch_add(1);
+    consumed_.notify_one();
   }
 }
 
 std::string Pipeline::command(const pulsetrack_msgs_msg_dds__Command_& c) {
   const std::string what = c.command != nullptr ? c.command : "";
   std::string why;
-  if (c.rig_id == nullptr || config_.rig_id != c.rig_id) {
-    return {};  // another rig's: not ours to answer
-  }
-  if (what == "start") {
+  const std::string rig = c.rig_id != nullptr ? c.rig_id : "";
+  if (!rig.empty() && rig != config_.rig_id) {
+    why = fmt::format("addressed to rig '{}', this is '{}' (namespace '{}')", rig.substr(0, 32),
+                      config_.rig_id, config_.ros_namespace);
+  } else if (what == "start") {
     paused_.store(false);
   } else if (what == "stop") {
     paused_.store(true);
   } else if (what == "redetect") {
     redetect_requested_.store(true);
   } else if (what == "set_roi") {
-    const cv::Size size = source_->rig().left.imageSize();
-    const cv::Rect frame(0, 0, size.width, size.height);
     const cv::Rect l(c.roi_left[0], c.roi_left[1], c.roi_left[2], c.roi_left[3]);
     const cv::Rect r(c.roi_right[0], c.roi_right[1], c.roi_right[2], c.roi_right[3]);
     const double depth_mm = c.depth_tolerance_m * 1e3;
-    if (l.width < 30 || l.height < 30 || r.width < 30 || r.height < 30 || (l & frame) != l ||
-        (r & frame) != r) {
-      why = fmt::format("ROIs must lie inside the {}x{} image, at least 30 px a side", size.width,
-                        size.height);
-    } else if (!(depth_mm > 0.0 && depth_mm <= 500.0)) {
-      why = "the depth tolerance must be in (0, 0.5] m";
+    if (auto ok = vision::TrackingSession::checkRoi(source_->rig(), {l, r}, depth_mm); !ok) {
+      why = ok.error().message;
     } else {
       roi_requests_.back() = {{l, r}, depth_mm};
       roi_requests_.publish();
@@ -348,9 +352,12 @@ std::string Pipeline::command(const pulsetrack_msgs_msg_dds__Command_& c) {
 
 void Pipeline::commandLoop() {
   auto reader =
-      dds::Reader::create(participant_, dds::kCommandTopic, &pulsetrack_msgs_msg_dds__Command__desc,
-                          dds::Profile::kCommand);
-  if (!reader) return;
+      dds::Reader::create(participant_, config_.topics.command.c_str(),
+                          &pulsetrack_msgs_msg_dds__Command__desc, dds::Profile::kCommand);
+  if (!reader) {
+    log::get("dds").error("commands will not be received: {}", reader.error().message);
+    return;
+  }
   pulsetrack_msgs_msg_dds__Command_ c{};
   while (running_.load()) {
     if (reader->takeOne(&c, std::chrono::milliseconds(100))) (void)command(c);
@@ -386,12 +393,22 @@ State Pipeline::health(const Notifier& notifier) {
   }
   const uint64_t lost_now = loss_window_.lost_in, pairs_now = loss_window_.pairs_in;
   const bool losing = lost_now * 4 > pairs_now && lost_now > 0;
+  // The stamps' clock: re-measured here, off the real-time path; a step is said, not smeared.
+  if (const int64_t step = clock_.remeasure(); step != 0) {
+    log::get("clock").warn(
+        "the system clock was stepped by {:+.3f} ms: stamps follow it from now on ({} steps)",
+        static_cast<double>(step) * 1e-6, clock_.steps());
+  }
+  const rt::ClockSync sync = rt::systemClockSync();
+  if (const TrackingText* t = tracking_text_.take()) last_tracking_ = *t;
+  const bool tracking = last_tracking_.state == vision::SessionState::kTracking;
+  const std::string why_not(last_tracking_.text.data(), last_tracking_.size);
   State state = State::kOk;
   if (!trackedOnce())
     state = stalled && now - started_ns_ > 10 * max_age ? State::kFault : State::kStarting;
   else if (stalled)
     state = State::kFault;
-  else if (quiet || losing || ok_features_.load() < 3)
+  else if (quiet || losing || !tracking || ok_features_.load() < 3)
     state = State::kDegraded;
   if (trackedOnce() && !said_ready_) {
     notifier.ready();
@@ -416,7 +433,7 @@ State Pipeline::health(const Notifier& notifier) {
   }
   pulsetrack_msgs_msg_dds__Health_ h{};
   h.header.frame_id = const_cast<char*>(kFrameId);
-  h.header.stamp = dds::stamp(now);
+  h.header.stamp = dds::stamp(clock_.toRealtime(now));
   h.rig_id = config_.rig_id.data();
   h.state = static_cast<uint8_t>(state);
   std::string state_text = line;
@@ -446,6 +463,14 @@ State Pipeline::health(const Notifier& notifier) {
                          : fmt::format("stopped after {} frames: {}", rs.written, rs.error);
   }
   h.recorder_state = recorder_state.data();
+  std::string tracking_state =
+      tracking
+          ? fmt::format("tracking {} of {} features", ok_features_.load(), total_features_.load())
+          : fmt::format("{}: {}", vision::toString(last_tracking_.state), why_not);
+  h.tracking_state = tracking_state.data();
+  h.clock_synchronized = sync.synchronized;
+  std::string clock_state = fmt::format("CLOCK_REALTIME {}; {} steps", sync.text, clock_.steps());
+  h.clock_state = clock_state.data();
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
   std::string err =
       quiet    ? fmt::format("no frame from the source for {} ms{}", (now - last_frame) / 1'000'000,
@@ -454,8 +479,9 @@ State Pipeline::health(const Notifier& notifier) {
                      "{} of the last {} triggers gave no frame pair (missing triggers {}, "
                      "unpaired frames {} in all)",
                      lost_now, lost_now + pairs_now, sc.missing_triggers, sc.unpaired)
-      : !last_refusal_.empty() ? last_refusal_
-                               : last_source_error_;
+      : !tracking && trackedOnce() ? tracking_state
+      : !last_refusal_.empty()     ? last_refusal_
+                                   : last_source_error_;
   h.last_error = err.data();
   (void)health_writer_.write(&h);
   return state;

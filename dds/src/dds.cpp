@@ -41,6 +41,36 @@ Result<dds_entity_t> makeTopic(const Participant& p, const char* topic,
 
 }  // namespace
 
+Result<Topics> Topics::forNamespace(std::string_view ns) {
+  if (!ns.empty() && ns.front() == '/') ns.remove_prefix(1);
+  std::string prefix = "rt/";
+  if (!ns.empty()) {
+    const auto bad = [&](const char* why) {
+      return vision::fail(
+          fmt::format("DDS namespace '{}': {} (ROS 2 names: segments of letters, "
+                      "digits and '_' separated by '/', e.g. or1 or site/or1)",
+                      ns, why));
+    };
+    bool segment_start = true;
+    for (const char ch : ns) {
+      const bool alpha = (ch >= 'a' && ch <= 'z') || (ch >= 'A' && ch <= 'Z') || ch == '_';
+      const bool digit = ch >= '0' && ch <= '9';
+      if (ch == '/') {
+        if (segment_start) return bad("an empty segment");
+        segment_start = true;
+        continue;
+      }
+      if (!alpha && !digit) return bad(fmt::format("'{}' is not allowed", ch).c_str());
+      if (segment_start && digit) return bad("a segment starts with a digit");
+      segment_start = false;
+    }
+    if (segment_start) return bad("it ends with '/'");
+    prefix += std::string(ns) + "/";
+  }
+  prefix += "pulsetrack/";
+  return Topics{prefix + "features", prefix + "deformation", prefix + "health", prefix + "command"};
+}
+
 Entity& Entity::operator=(Entity&& o) noexcept {
   if (this != &o) {
     if (e_ > 0) dds_delete(e_);
@@ -88,6 +118,12 @@ Result<void> Writer::write(const void* sample) const {
   if (const dds_return_t rc = dds_write(writer_.get(), sample); rc != DDS_RETCODE_OK)
     return vision::fail(fmt::format("DDS: write on {} failed: {}", name_, why(rc)));
   return {};
+}
+
+bool Writer::waitForAcks(std::chrono::milliseconds timeout) const {
+  return dds_wait_for_acks(writer_.get(),
+                           std::chrono::duration_cast<std::chrono::nanoseconds>(timeout).count()) ==
+         DDS_RETCODE_OK;
 }
 
 int Writer::matchedReaders() const {

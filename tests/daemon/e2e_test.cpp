@@ -20,82 +20,15 @@
 #include <optional>
 #include <thread>
 
+#include "daemon/daemon_process.hpp"
 #include "pulsetrack/dds/dds.hpp"
 #include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/sim/scene.hpp"
 #include "pulsetrack/vision/stereo_rig.hpp"
 #include "test_util.hpp"
 
-extern char** environ;
-
 namespace pulsetrack {
 namespace {
-
-const std::string kScene = std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-60s.toml";
-
-struct Daemon {
-  pid_t pid = 0;
-  int notify_fd = -1;
-  std::vector<std::pair<double, std::string>> notes;  // (seconds since start, datagram)
-
-  Daemon(const test::TempDir& dir, uint32_t domain, const std::vector<std::string>& extra,
-         const std::string& source_extra = "", const std::vector<std::string>& wrapper = {}) {
-    const auto cfg = dir.path() / "pulsetrackd.toml";
-    std::ofstream(cfg) << "rig_id = \"rig-e2e\"\n[dds]\ndomain_id = " << domain
-                       << "\n[source]\nkind = \"sim\"\nscene = \"" << kScene << "\"\nfps = 10.0\n"
-                       << source_extra
-                       << "[realtime]\nlock_memory = false\n"
-                          "capture = { priority = 0 }\ntrack = { priority = 0 }\n"
-                          "publish = { priority = 0 }\n[health]\nperiod_ms = 200\n";
-    const std::string sock = (dir.path() / "notify").string();
-    notify_fd = socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC | SOCK_NONBLOCK, 0);
-    sockaddr_un a{};
-    a.sun_family = AF_UNIX;
-    sock.copy(a.sun_path, sizeof a.sun_path - 1);
-    EXPECT_EQ(bind(notify_fd, reinterpret_cast<sockaddr*>(&a), sizeof a), 0);
-    setenv("CYCLONEDDS_URI", pulsetrack::dds::kLoopbackUri, 1);
-    setenv("NOTIFY_SOCKET", sock.c_str(), 1);
-    setenv("WATCHDOG_USEC", "1000000", 1);
-    unsetenv("WATCHDOG_PID");
-    std::vector<std::string> args = wrapper;
-    for (const std::string& arg : {std::string(PULSETRACKD), std::string("-c"), cfg.string()})
-      args.push_back(arg);
-    args.insert(args.end(), extra.begin(), extra.end());
-    std::vector<char*> argv;
-    argv.reserve(args.size() + 1);
-    for (auto& s : args) argv.push_back(s.data());
-    argv.push_back(nullptr);
-    EXPECT_EQ(posix_spawn(&pid, args[0].c_str(), nullptr, nullptr, argv.data(), environ), 0);
-    unsetenv("NOTIFY_SOCKET");
-    unsetenv("WATCHDOG_USEC");
-  }
-  void drain(double t) {
-    char buf[4096];
-    for (;;) {
-      const ssize_t n = recv(notify_fd, buf, sizeof buf, 0);
-      if (n <= 0) return;
-      notes.emplace_back(t, std::string(buf, static_cast<size_t>(n)));
-    }
-  }
-  // Waits for the daemon to exit, reading its notifications meanwhile (a full datagram queue
-  // would block its sd_notify, as it would under a systemd that stopped reading).
-  int wait(const std::function<double()>& secs) {
-    int status = 0;
-    for (;;) {
-      drain(secs());
-      const pid_t r = waitpid(pid, &status, WNOHANG);
-      if (r == pid || r < 0) break;
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-    drain(secs());
-    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  }
-  ~Daemon() {
-    if (notify_fd >= 0) close(notify_fd);
-  }
-  Daemon(const Daemon&) = delete;
-  Daemon& operator=(const Daemon&) = delete;
-};
 
 // Another process's view of the daemon over DDS: features and health readers on the test's
 // domain, their samples, and the seconds since it subscribed.
@@ -493,6 +426,11 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
   // ctl itself refuses what it cannot send.
   r = test::run(ctl + "set-roi");
   EXPECT_EQ(r.exit_code, 2) << r.output;
+  // A refusal reaches ctl from the daemon's health: exit 1 with the reason.
+  r = test::run(ctl + "set-roi --roi-left 1300,1000,100,100 --roi-right 10,10,100,100");
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_NE(r.output.find("left ROI 1300,1000 100x100: not inside the"), std::string::npos)
+      << r.output;
   // A domain no test uses (tests run in parallel, each daemon on its own domain).
   r = test::run(test::cli() + " ctl --domain 231 stop");
   EXPECT_NE(r.exit_code, 0);

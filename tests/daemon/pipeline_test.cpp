@@ -6,6 +6,8 @@
 
 #include <gtest/gtest.h>
 
+#include <array>
+#include <ctime>
 #include <thread>
 
 #include "drivers/fake_v4l2.hpp"
@@ -41,15 +43,25 @@ class StallingSource final : public drivers::CameraSource {
     p.first.copyTo(f.left);
     p.second.copyTo(f.right);
     f.trigger_seq = n_++;
-    f.t_left_ns = f.t_right_ns = rt::monotonicNs();
+    f.t_left_ns = f.t_right_ns = rt::monotonicNs();  // the exposure
+    // The same instant on the system clock, read by the test's own call.
+    timespec real{};
+    clock_gettime(CLOCK_REALTIME, &real);
+    exposure_realtime_[f.trigger_seq % exposure_realtime_.size()] =
+        int64_t{real.tv_sec} * 1'000'000'000 + real.tv_nsec;
     return drivers::Next::kFrame;
   }
   void stop() override {}
   std::string lastFault() const override { return "/dev/video0: ENODEV (unplugged)"; }
   drivers::SourceCounters counters() const override { return {n_.load(), 0, 0, 0}; }
   std::string triggerState() const override { return "test"; }
+  // CLOCK_REALTIME read right after the exposure's monotonic stamp of frame `seq`.
+  [[nodiscard]] int64_t exposureRealtime(uint64_t seq) const {
+    return exposure_realtime_[seq % exposure_realtime_.size()];
+  }
 
  private:
+  std::array<std::atomic<int64_t>, 4096> exposure_realtime_{};
   std::vector<std::pair<cv::Mat, cv::Mat>> frames_;
   vision::StereoRig rig_;
   int stall_after_;
@@ -202,6 +214,146 @@ TEST(Pipeline, AV4l2CameraUnpluggedAndPluggedBackIsReportedThenTrackedAgain) {
   EXPECT_NE(degraded_text.find("/dev/video1"), std::string::npos) << degraded_text;
   EXPECT_GT(pipeline.tracked(), tracked_unplugged + 20);  // tracking resumed
   EXPECT_NE(trigger_state.find("free-running"), std::string::npos) << trigger_state;
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+}
+
+// Stamps: every features and deformation sample's header.stamp is its pair's exposure on the
+// system clock, within 1 ms of CLOCK_REALTIME read at the exposure; health names the clock.
+TEST(Pipeline, StampsAreTheExposureOnTheSystemClock) {
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+  auto scene = renderCortex(4);
+  ASSERT_TRUE(scene) << scene.error().message;
+  const auto& [rig, frames] = *scene;
+  DaemonConfig config;
+  config.rig_id = "rig-stamps";
+  config.fps = 20;
+  config.lock_memory = false;
+  config.capture = config.track = config.publish = {0, -1};
+  auto p = dds::Participant::create(84);
+  ASSERT_TRUE(p) << p.error().message;
+  auto features = dds::Reader::create(
+      *p, dds::kFeaturesTopic, &pulsetrack_msgs_msg_dds__Features__desc, dds::Profile::kSensorData);
+  auto deformation =
+      dds::Reader::create(*p, dds::kDeformationTopic, &pulsetrack_msgs_msg_dds__Deformation__desc,
+                          dds::Profile::kSensorData);
+  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                                    dds::Profile::kTransientLocal);
+  ASSERT_TRUE(features && deformation && health);
+  auto owned =
+      std::make_unique<StallingSource>(frames, rig, 1'000'000, std::chrono::milliseconds(0));
+  const StallingSource* source = owned.get();
+  Pipeline pipeline(config, std::move(owned), *p);
+  ASSERT_TRUE(pipeline.start());
+  const Notifier notifier;
+  pulsetrack_msgs_msg_dds__Features_ f{};
+  pulsetrack_msgs_msg_dds__Deformation_ d{};
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  const auto ns = [](const builtin_interfaces_msg_dds__Time_& t) {
+    return int64_t{t.sec} * 1'000'000'000 + t.nanosec;
+  };
+  int checked_f = 0, checked_d = 0, with_velocity = 0;
+  double worst_ms = 0.0;
+  std::string clock_state;
+  for (int k = 0; k < 600 && (checked_f < 20 || checked_d < 20 || clock_state.empty()); ++k) {
+    if (features->takeOne(&f, std::chrono::milliseconds(50))) {
+      const double off_ms =
+          static_cast<double>(ns(f.header.stamp) - source->exposureRealtime(f.frame)) * 1e-6;
+      worst_ms = std::max(worst_ms, std::abs(off_ms));
+      EXPECT_LT(std::abs(off_ms), 1.0) << "frame " << f.frame;
+      ++checked_f;
+    }
+    while (deformation->takeOne(&d, std::chrono::milliseconds(0))) {
+      EXPECT_LT(std::abs(ns(d.header.stamp) - source->exposureRealtime(d.frame)), 1'000'000);
+      with_velocity += d.velocity_delay > 0.0 ? 1 : 0;  // not the signal's first sample
+      ++checked_d;
+    }
+    if (k % 4 == 0) (void)pipeline.health(notifier);
+    while (health->takeOne(&h, std::chrono::milliseconds(0))) clock_state = h.clock_state;
+  }
+  pipeline.stop();
+  std::cout << checked_f << " features and " << checked_d
+            << " deformation samples: stamp - CLOCK_REALTIME at the exposure, worst " << worst_ms
+            << " ms; health: " << clock_state << "\n";
+  EXPECT_GE(checked_f, 20);
+  EXPECT_GE(checked_d, 20);
+  EXPECT_GE(with_velocity, checked_d - 1);
+  EXPECT_NE(clock_state.find("CLOCK_REALTIME"), std::string::npos) << clock_state;
+  dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
+  dds_sample_free(&d, &pulsetrack_msgs_msg_dds__Deformation__desc, DDS_FREE_CONTENTS);
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+}
+
+// The case: set_roi with a 40x40 ROI in the image's corner. Nothing is tracked there;
+// health must not say ok, and must say why; a good ROI brings tracking back. An ROI outside the
+// image is refused at the command with its reason.
+TEST(Pipeline, AnRoiThatFindsNothingIsDegradedWithTheReasonOnHealth) {
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+  auto scene = renderCortex(4);
+  ASSERT_TRUE(scene) << scene.error().message;
+  const auto& [rig, frames] = *scene;
+  DaemonConfig config;
+  config.rig_id = "rig-roi";
+  config.fps = 20;
+  config.lock_memory = false;
+  config.capture = config.track = config.publish = {0, -1};
+  auto p = dds::Participant::create(85);
+  ASSERT_TRUE(p) << p.error().message;
+  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
+                                    dds::Profile::kTransientLocal);
+  ASSERT_TRUE(health);
+  Pipeline pipeline(
+      config,
+      std::make_unique<StallingSource>(frames, rig, 1'000'000, std::chrono::milliseconds(0)), *p);
+  ASSERT_TRUE(pipeline.start());
+  const Notifier notifier;
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  const auto wait_for = [&](State want, int max_periods) {
+    for (int k = 0; k < max_periods; ++k) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      if (pipeline.health(notifier) == want) {
+        while (health->takeOne(&h, std::chrono::milliseconds(200))) {
+          if (h.state == static_cast<uint8_t>(want)) return true;
+        }
+      }
+    }
+    return false;
+  };
+  ASSERT_TRUE(wait_for(State::kOk, 200));
+  pulsetrack_msgs_msg_dds__Command_ c{};
+  c.rig_id = const_cast<char*>("");
+  c.request_id = 7;
+  c.command = const_cast<char*>("set_roi");
+  const int corner[4] = {10, 10, 40, 40};
+  std::copy_n(corner, 4, c.roi_left);
+  std::copy_n(corner, 4, c.roi_right);
+  c.depth_tolerance_m = 0.02;
+  EXPECT_EQ(pipeline.command(c), "");
+  ASSERT_TRUE(wait_for(State::kDegraded, 200));
+  const std::string tracking = h.tracking_state, last_error = h.last_error;
+  std::cout << "health: " << tracking << " | " << last_error << "\n";
+  EXPECT_NE(tracking.find("ROI 10,10 40x40"), std::string::npos) << tracking;
+  EXPECT_NE(last_error.find("ROI 10,10 40x40"), std::string::npos) << last_error;
+  // Outside the image: refused at once, with the reason.
+  const int outside[4] = {1300, 1000, 100, 100};
+  std::copy_n(outside, 4, c.roi_left);
+  const std::string why = pipeline.command(c);
+  EXPECT_NE(why.find("command 7 'set_roi' refused: left ROI 1300,1000 100x100: not inside"),
+            std::string::npos)
+      << why;
+  // Another rig's command is refused, not obeyed.
+  c.rig_id = const_cast<char*>("rig-other");
+  c.command = const_cast<char*>("stop");
+  EXPECT_NE(pipeline.command(c).find("addressed to rig 'rig-other'"), std::string::npos);
+  // Back to the shipped ROI: tracking and ok again.
+  c.rig_id = const_cast<char*>("rig-roi");
+  c.command = const_cast<char*>("set_roi");
+  const cv::Rect l = config.roi.left, r = config.roi.right;
+  const int good_l[4] = {l.x, l.y, l.width, l.height}, good_r[4] = {r.x, r.y, r.width, r.height};
+  std::copy_n(good_l, 4, c.roi_left);
+  std::copy_n(good_r, 4, c.roi_right);
+  EXPECT_EQ(pipeline.command(c), "");
+  EXPECT_TRUE(wait_for(State::kOk, 200));
+  pipeline.stop();
   dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
 }
 

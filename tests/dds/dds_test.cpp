@@ -23,7 +23,51 @@ TEST(Dds, TypesAreNamedTheRos2Way) {
                "pulsetrack_msgs::msg::dds_::Features_");
   EXPECT_STREQ(pulsetrack_msgs_msg_dds__Health__desc.m_typename,
                "pulsetrack_msgs::msg::dds_::Health_");
-  EXPECT_STREQ(kFeaturesTopic, "rt/pulsetrack/features");
+}
+
+// One rig per namespace, as ROS 2 names topics; a name ROS 2 would refuse is refused.
+TEST(Dds, TopicsFollowTheNamespace) {
+  auto none = Topics::forNamespace("");
+  ASSERT_TRUE(none);
+  EXPECT_EQ(none->features, kFeaturesTopic);
+  EXPECT_EQ(none->command, kCommandTopic);
+  auto or1 = Topics::forNamespace("or1");
+  ASSERT_TRUE(or1);
+  EXPECT_EQ(or1->features, "rt/or1/pulsetrack/features");
+  EXPECT_EQ(or1->deformation, "rt/or1/pulsetrack/deformation");
+  EXPECT_EQ(or1->health, "rt/or1/pulsetrack/health");
+  EXPECT_EQ(or1->command, "rt/or1/pulsetrack/command");
+  auto nested = Topics::forNamespace("/site_a/or_2");
+  ASSERT_TRUE(nested);
+  EXPECT_EQ(nested->features, "rt/site_a/or_2/pulsetrack/features");
+  for (const char* bad : {"or 1", "1or", "or1/", "or1//x", "or-1", "or1/2x"}) {
+    auto t = Topics::forNamespace(bad);
+    ASSERT_FALSE(t) << bad;
+    EXPECT_NE(t.error().message.find(std::string("'") + (bad[0] == '/' ? bad + 1 : bad) + "'"),
+              std::string::npos)
+        << t.error().message;
+  }
+}
+
+// ROS 2 types are keyless, and DDS never matches a keyed endpoint with a keyless one: no @key
+// in the IDL, and each struct's extensibility stated.
+TEST(Dds, TheIdlIsKeylessAndFinal) {
+  std::ifstream f(std::string(PULSETRACK_SOURCE_DIR) + "/msgs/idl/pulsetrack_msgs.idl");
+  const std::string idl((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  ASSERT_FALSE(idl.empty());
+  size_t structs = 0, finals = 0;
+  for (size_t at = idl.find("struct "); at != std::string::npos; at = idl.find("struct ", at + 1)) {
+    ++structs;
+    finals += at >= 7 && idl.compare(at - 7, 7, "@final ") == 0 ? 1 : 0;
+  }
+  EXPECT_EQ(structs, 10U);
+  EXPECT_EQ(finals, structs);
+  std::string code;  // the IDL without its comments
+  std::istringstream lines(idl);
+  for (std::string line; std::getline(lines, line);) code += line.substr(0, line.find("//")) + "\n";
+  EXPECT_EQ(code.find("@key"), std::string::npos);
+  EXPECT_EQ(pulsetrack_msgs_msg_dds__Features__desc.m_nkeys, 0U);
+  EXPECT_EQ(pulsetrack_msgs_msg_dds__Command__desc.m_nkeys, 0U);
 }
 
 // The ROS 2 .msg files say what the IDL says: the same fields in the same order (a ROS 2 node

@@ -82,7 +82,7 @@ TEST(SimSource, InjectedTriggerAndCameraFaultsAreCountedAndNeverPairedWrongly) {
   // fired), the right camera missed 10 21 32: 25 whole pairs, each either handed over or, when
   // the render was late, an overrun. Every count is exact whatever the machine's speed.
   EXPECT_EQ(c.frames + c.overruns, 25U);
-  EXPECT_GE(pairs, 12);
+  EXPECT_GT(pairs, 0);  // how many of the 25 were handed over depends on the render speed
   EXPECT_EQ(c.missing_triggers, 7U);  // 4 ... 34 lie between pairs; 39 comes after the last
   EXPECT_EQ(c.unpaired, 7U);          // the partners of the 7 frames lost by one camera
   EXPECT_EQ(c.dropped, 4U);           // the left counter's gaps

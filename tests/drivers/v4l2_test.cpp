@@ -7,9 +7,15 @@
 
 #include "pulsetrack/drivers/v4l2.hpp"
 
+#include <fcntl.h>
 #include <gtest/gtest.h>
+#include <linux/videodev2.h>
+#include <sys/ioctl.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
+#include <cstring>
 #include <deque>
 #include <filesystem>
 #include <mutex>
@@ -317,22 +323,53 @@ TEST(V4l2Device, RealDeviceStreamsWhenPresent) {
   if (dev.empty())
     GTEST_SKIP()
         << "SKIP: no /dev/video* on this machine: the V4L2 driver ran only through its seam";
+  // What the device offers, asked of the kernel directly (not through the code under test): a
+  // device that offers one of the driver's formats must stream through it, else the test fails.
+  const int fd = ::open(dev.c_str(), O_RDWR | O_NONBLOCK);
+  ASSERT_GE(fd, 0) << dev << ": " << std::strerror(errno);
+  std::string format;
+  uint32_t width = 0, height = 0;
+  for (uint32_t i = 0; format.empty(); ++i) {
+    v4l2_fmtdesc fd_desc{};
+    fd_desc.index = i;
+    fd_desc.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+    if (::ioctl(fd, VIDIOC_ENUM_FMT, &fd_desc) != 0) break;
+    const uint32_t f = fd_desc.pixelformat;
+    const char* name = f == V4L2_PIX_FMT_GREY   ? "GREY"
+                       : f == V4L2_PIX_FMT_Y16  ? "Y16"
+                       : f == V4L2_PIX_FMT_YUYV ? "YUYV"
+                                                : nullptr;
+    if (name == nullptr) continue;
+    v4l2_frmsizeenum size{};
+    size.index = 0;
+    size.pixel_format = f;
+    if (::ioctl(fd, VIDIOC_ENUM_FRAMESIZES, &size) != 0) continue;
+    width = size.type == V4L2_FRMSIZE_TYPE_DISCRETE ? size.discrete.width : size.stepwise.max_width;
+    height =
+        size.type == V4L2_FRMSIZE_TYPE_DISCRETE ? size.discrete.height : size.stepwise.max_height;
+    format = name;
+  }
+  ::close(fd);
+  if (format.empty())
+    GTEST_SKIP() << "SKIP: " << dev
+                 << " offers none of GREY, Y16, YUYV (not a camera for this rig)";
+  std::cout << dev << ": " << format << " " << width << "x" << height << "\n";
   V4l2CameraConfig c;
   c.device = dev;
-  c.width = 640;
-  c.height = 480;
-  c.pixel_format = "YUYV";
+  c.width = static_cast<int>(width);
+  c.height = static_cast<int>(height);
+  c.pixel_format = format;
   V4l2Camera cam(systemV4l2Io(), c);
   auto ok = cam.open();
-  if (!ok)
-    GTEST_SKIP() << "SKIP: " << dev << " does not stream 640x480 YUYV: " << ok.error().message;
+  ASSERT_TRUE(ok) << dev << " offers " << format << " " << width << "x" << height
+                  << " but the driver failed: " << ok.error().message;
   pollfd p{cam.fd(), POLLIN, 0};
   ASSERT_EQ(systemV4l2Io().poll(&p, 1, 2000), 1);
   int index = -1;
   CameraStamp s;
   ASSERT_EQ(cam.dequeue(index, s), V4l2Camera::Dequeue::kFrame) << cam.lastError();
   EXPECT_GT(s.t_ns, 0);
-  cv::Mat out(480, 640, CV_8UC1);
+  cv::Mat out(static_cast<int>(height), static_cast<int>(width), CV_8UC1);
   cam.convert(index, out);
   EXPECT_TRUE(cam.requeue(index));
 }

@@ -74,10 +74,19 @@ TEST(TrackCli, ImageFolderAndMatch) {
   std::string header;
   std::getline(csv, header);
   EXPECT_EQ(header, "id,xl,yl,xr,yr,ncc,nmi,epipolar_px,x,y,z,status");
-  int ok = 0, n = 0;
-  for (std::string line; std::getline(csv, line); ++n) ok += line.ends_with(",ok") ? 1 : 0;
+  int ok = 0, n = 0, named = 0;
+  for (std::string line; std::getline(csv, line); ++n) {
+    ok += line.ends_with(",ok") ? 1 : 0;
+    // A rejected candidate names the gate: "occluded:stereo_ncc", "lost:no_peak", ...
+    const std::string status = line.substr(line.rfind(',') + 1);
+    named += status != "ok" && status.find(':') != std::string::npos ? 1 : 0;
+  }
   EXPECT_GT(ok, 40);
-  EXPECT_GE(n, ok);
+  EXPECT_EQ(named, n - ok) << "every rejected candidate names its gate";
+  // The file holds what the command said it found.
+  EXPECT_NE(out.output.find(std::to_string(n) + " candidates, " + std::to_string(ok) + " ok"),
+            std::string::npos)
+      << out.output << " (file: " << n << " rows, " << ok << " ok)";
 }
 
 TEST(TrackCli, ClearErrors) {
@@ -100,7 +109,7 @@ TEST(TrackCli, ClearErrors) {
   r = test::run(test::cli() + " track --input " + (dir / "rec") +
                 " --roi-left 1300,1000,200,200 --roi-right 1,1,200,200 --out " + (dir / "x.csv"));
   EXPECT_EQ(r.exit_code, 1);
-  EXPECT_NE(r.output.find("left ROI 1300,1000,200,200 must lie inside the 1360x1024 image"),
+  EXPECT_NE(r.output.find("left ROI 1300,1000 200x200: not inside the 1360x1024 image"),
             std::string::npos)
       << r.output;
 }

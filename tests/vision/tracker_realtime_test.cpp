@@ -17,6 +17,7 @@
 #include "pulsetrack/sim/paper_rig.hpp"
 #include "pulsetrack/sim/scene.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
+#include "pulsetrack/vision/tracking_session.hpp"
 #include "test_util.hpp"
 
 namespace {
@@ -143,6 +144,73 @@ TEST(TrackerRealtime, TrackAllocatesNothingAndLocksNothing) {
   EXPECT_EQ(g_locks.load(), 0) << "mutex locks in 11 calls of track() + refreshStereo()";
   EXPECT_GT(tracker.okCount(), 10);
   EXPECT_GT(refreshed, 50);  // the refresh ran (25 per pair at most)
+}
+
+// The session's per-pair path (track, deformation, refresh) allocates nothing either; and with
+// an ROI that cannot work, or one that finds no features, pairs between the rate-limited
+// detection attempts cost no allocation: a bad ROI never turns the real-time thread into a
+// detector running on every pair.
+TEST(TrackerRealtime, TheSessionAllocatesNothingPerPairEvenWithABadRoi) {
+  sim::SceneSpec spec;
+  spec.kind = sim::SceneKind::kCortex;
+  spec.supersample = 1;
+  spec.cortex.oscillations = sim::paperMotion();
+  sim::StereoSimulator s(spec, sim::paperRig());
+  std::vector<cv::Mat> left(12), right(12);
+  for (int i = 0; i < 12; ++i)
+    s.render(i, left[static_cast<size_t>(i)], right[static_cast<size_t>(i)]);
+  const auto t_ns = [](int i) { return int64_t{i} * 100'000'000; };  // 10 Hz
+  const auto run = [&](TrackingSession& session, int from, int to) {
+    g_allocations = 0;
+    g_locks = 0;
+    g_counting = true;
+    for (int i = from; i < to; ++i) {
+      const auto k = static_cast<size_t>(i);
+      (void)session.process(left[k], right[k], static_cast<uint64_t>(i), t_ns(i));
+      session.afterPublish(left[k], right[k]);
+    }
+    g_counting = false;
+  };
+  {  // a good ROI: detection at pair 0 (allocates), then tracking
+    SessionConfig c;
+    c.roi = {{560, 380, 260, 220}, {540, 370, 260, 220}};
+    TrackingSession session(s.rig(), c);
+    (void)session.process(left[0], right[0], 0, t_ns(0));
+    ASSERT_EQ(session.last().state, SessionState::kTracking) << session.reason();
+    (void)session.process(left[1], right[1], 1, t_ns(1));  // warm-up
+    run(session, 2, 12);
+    EXPECT_EQ(g_allocations.load(), 0) << "allocations in 10 tracked pairs";
+    EXPECT_EQ(g_locks.load(), 0);
+    EXPECT_TRUE(session.last().deformation.valid);
+  }
+  {  // an ROI outside the image: refused with its reason, every pair free
+    SessionConfig c;
+    c.roi = {{1300, 1000, 200, 200}, {540, 370, 260, 220}};
+    TrackingSession session(s.rig(), c);
+    run(session, 0, 12);
+    EXPECT_EQ(g_allocations.load(), 0) << "allocations in 12 pairs with an ROI outside the image";
+    EXPECT_EQ(session.last().state, SessionState::kNoFeatures);
+    EXPECT_NE(session.reason().find("left ROI 1300,1000 200x200: not inside"), std::string::npos)
+        << session.reason();
+    EXPECT_EQ(session.detectionAttempts(), 0);
+  }
+  {  // a 40x40 ROI in the image's corner (the rig's black surround): no feature; detection is
+     // tried at pair 0 and again one retry interval (1 s) later, never in between
+    SessionConfig c;
+    c.roi = {{10, 10, 40, 40}, {10, 10, 40, 40}};
+    TrackingSession session(s.rig(), c);
+    (void)session.process(left[0], right[0], 0, t_ns(0));
+    EXPECT_EQ(session.detectionAttempts(), 1);
+    run(session, 1, 10);
+    EXPECT_EQ(g_allocations.load(), 0) << "allocations between detection attempts";
+    EXPECT_EQ(session.detectionAttempts(), 1);
+    (void)session.process(left[10], right[10], 10, t_ns(10));
+    EXPECT_EQ(session.detectionAttempts(), 2);
+    EXPECT_EQ(session.last().state, SessionState::kNoFeatures);
+    EXPECT_NE(session.reason().find("ROI 10,10 40x40"), std::string::npos) << session.reason();
+    EXPECT_NE(session.reason().find("tried again every 1 s"), std::string::npos)
+        << session.reason();
+  }
 }
 
 TEST(TrackerRealtime, PairingAndTheRecordersOfferAllocateNothingAndLockNothing) {

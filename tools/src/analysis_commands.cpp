@@ -69,9 +69,16 @@ struct AnalyzeArgs {
 int runAnalyze(const AnalyzeArgs& a) {
   std::vector<analysis::NamedMotion> all;
   for (const std::string& path : a.tracks) {
-    auto rows = record::readTrackCsv(path);
-    if (!rows) return commandError("analyze", rows.error().message);
-    auto m = analysis::analyzeMotion(*rows);
+    vision::Result<analysis::MotionAnalysis> m;
+    if (record::isDeformationCsv(path)) {  // the session's signal, as pulsetrackd publishes it
+      auto rows = record::readDeformationCsv(path);
+      if (!rows) return commandError("analyze", rows.error().message);
+      m = analysis::analyzeMotion(*rows);
+    } else {
+      auto rows = record::readTrackCsv(path);
+      if (!rows) return commandError("analyze", rows.error().message);
+      m = analysis::analyzeMotion(*rows);
+    }
     if (!m) return commandError("analyze", fmt::format("{}: {}", path, m.error().message));
     all.push_back({std::filesystem::path(path).stem().string(), std::move(*m)});
     fmt::print("{}", analysis::formatMotion(all.back()));
@@ -134,7 +141,8 @@ CommandRunner addAnalyzeCommand(CLI::App& app) {
       "Brain motion from tracks (section 6): the cloud's displacement, missing frames filled, "
       "spectrum with named peaks (vasomotor, breathing, cardiac), feature speeds, Fig. 9, HTML.");
   cmd->add_option("tracks", args->tracks,
-                  "Track CSV files (`pulsetrack track`), one per acquisition")
+                  "Deformation files (`pulsetrack track` writes NAME-deformation.csv: the signal "
+                  "pulsetrackd publishes) or track CSV files, one per acquisition")
       ->required()
       ->check(CLI::ExistingFile);
   cmd->add_option("--out", args->out, "Report folder (CSV, PNG, report.html)")->required();

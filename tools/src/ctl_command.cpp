@@ -1,11 +1,13 @@
 // pulsetrack ctl: the operator's capture cycle for a running pulsetrackd, over the DDS command
 // topic: start, stop, redetect, set-roi. Waits for the daemon's reader, sends once (reliable),
-// and reports the daemon's refusal if its health says so.
+// waits for the daemon's acknowledgement, and reports the daemon's refusal if its health says so
+// within 2 s (exit 1).
 
 #include <fmt/format.h>
 
 #include <chrono>
 #include <memory>
+#include <string_view>
 #include <thread>
 
 #include "pulsetrack/dds/dds.hpp"
@@ -17,7 +19,8 @@ namespace {
 
 struct CtlArgs {
   uint32_t domain = 0;
-  std::string rig = "rig-0";
+  std::string ns;
+  std::string rig;
   std::string command;
   std::vector<int> roi_left, roi_right;
   double depth_mm = 20.0;
@@ -27,14 +30,21 @@ struct CtlArgs {
 int runCtl(const CtlArgs& a) {
   auto p = dds::Participant::create(a.domain);
   if (!p) return fmt::print(stderr, "ctl: {}\n", p.error().message), 1;
-  auto w = dds::Writer::create(*p, dds::kCommandTopic, &pulsetrack_msgs_msg_dds__Command__desc,
+  auto topics = dds::Topics::forNamespace(a.ns);
+  if (!topics) return fmt::print(stderr, "ctl: {}\n", topics.error().message), 2;
+  auto w = dds::Writer::create(*p, topics->command.c_str(), &pulsetrack_msgs_msg_dds__Command__desc,
                                dds::Profile::kCommand);
   if (!w) return fmt::print(stderr, "ctl: {}\n", w.error().message), 1;
+  auto health =
+      dds::Reader::create(*p, topics->health.c_str(), &pulsetrack_msgs_msg_dds__Health__desc,
+                          dds::Profile::kTransientLocal);
+  if (!health) return fmt::print(stderr, "ctl: {}\n", health.error().message), 1;
   const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
   while (w->matchedReaders() == 0 && std::chrono::steady_clock::now() < until)
     std::this_thread::sleep_for(std::chrono::milliseconds(10));
   if (w->matchedReaders() == 0) {
-    fmt::print(stderr, "ctl: no pulsetrackd is listening on DDS domain {} (5 s)\n", a.domain);
+    fmt::print(stderr, "ctl: no pulsetrackd is listening on {} on DDS domain {} (5 s)\n",
+               topics->command, a.domain);
     return 1;
   }
   pulsetrack_msgs_msg_dds__Command_ c{};
@@ -57,10 +67,29 @@ int runCtl(const CtlArgs& a) {
     c.depth_tolerance_m = a.depth_mm * 1e-3;
   }
   if (auto ok = w->write(&c); !ok) return fmt::print(stderr, "ctl: {}\n", ok.error().message), 1;
-  // Reliable delivery to a matched reader; give it the moment it needs before leaving.
-  dds_wait_for_acks(0, DDS_SECS(2));
-  fmt::print("ctl: sent '{}' (request {}) to {} on domain {}\n", cmd, c.request_id, a.rig,
-             a.domain);
+  // Reliable delivery to the daemon's reader.
+  if (!w->waitForAcks(std::chrono::seconds(5))) {
+    fmt::print(stderr, "ctl: '{}' sent on {} but not acknowledged within 5 s\n", cmd,
+               topics->command);
+    return 1;
+  }
+  // A refusal shows on health (last_error "command <request_id> ... refused: why").
+  const std::string tag = fmt::format("command {} ", c.request_id);
+  pulsetrack_msgs_msg_dds__Health_ h{};
+  std::string refusal;
+  const auto listen_until = std::chrono::steady_clock::now() + std::chrono::seconds(2);
+  while (refusal.empty() && std::chrono::steady_clock::now() < listen_until) {
+    if (health->takeOne(&h, std::chrono::milliseconds(100)) && h.last_error != nullptr &&
+        std::string_view(h.last_error).starts_with(tag))
+      refusal = h.last_error;
+  }
+  dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+  if (!refusal.empty()) {
+    fmt::print(stderr, "ctl: {}\n", refusal);
+    return 1;
+  }
+  fmt::print("ctl: sent '{}' (request {}) on {}, DDS domain {}, acknowledged\n", cmd, c.request_id,
+             topics->command, a.domain);
   return 0;
 }
 
@@ -76,7 +105,9 @@ CommandRunner addCtlCommand(CLI::App& app) {
   cmd->add_option("--domain", a->domain, "DDS domain id")
       ->check(CLI::Range(0, 232))
       ->capture_default_str();
-  cmd->add_option("--rig", a->rig, "The daemon's rig_id")->capture_default_str();
+  cmd->add_option("--namespace", a->ns, "The daemon's topic namespace ([dds] namespace)");
+  cmd->add_option("--rig", a->rig,
+                  "The daemon's rig_id (a check: default, whichever rig the namespace has)");
   cmd->add_option("--roi-left", a->roi_left, "set-roi: x,y,w,h (px)")->delimiter(',');
   cmd->add_option("--roi-right", a->roi_right, "set-roi: x,y,w,h (px)")->delimiter(',');
   cmd->add_option("--depth", a->depth_mm, "set-roi: depth tolerance (mm)")

@@ -20,6 +20,7 @@ void onSignal(int /*sig*/) { g_stop = 1; }
 
 struct ListenArgs {
   uint32_t domain = 0;
+  std::string ns;
   std::string rig;
   double seconds = 0.0;
   int count = 0;
@@ -34,17 +35,20 @@ const char* stateName(uint8_t s) {
 int runListen(const ListenArgs& a) {
   auto p = dds::Participant::create(a.domain);
   if (!p) return fmt::print(stderr, "listen: {}\n", p.error().message), 1;
+  auto topics = dds::Topics::forNamespace(a.ns);
+  if (!topics) return fmt::print(stderr, "listen: {}\n", topics.error().message), 2;
   auto def =
-      dds::Reader::create(*p, dds::kDeformationTopic, &pulsetrack_msgs_msg_dds__Deformation__desc,
-                          dds::Profile::kSensorData);
-  auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
-                                    dds::Profile::kTransientLocal);
+      dds::Reader::create(*p, topics->deformation.c_str(),
+                          &pulsetrack_msgs_msg_dds__Deformation__desc, dds::Profile::kSensorData);
+  auto health =
+      dds::Reader::create(*p, topics->health.c_str(), &pulsetrack_msgs_msg_dds__Health__desc,
+                          dds::Profile::kTransientLocal);
   if (!def) return fmt::print(stderr, "listen: {}\n", def.error().message), 1;
   if (!health) return fmt::print(stderr, "listen: {}\n", health.error().message), 1;
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   fmt::print(stderr, "listening on DDS domain {} ({} and {}); Ctrl-C to stop\n", a.domain,
-             dds::kDeformationTopic, dds::kHealthTopic);
+             topics->deformation, topics->health);
   pulsetrack_msgs_msg_dds__Deformation_ d{};
   pulsetrack_msgs_msg_dds__Health_ h{};
   const auto t0 = std::chrono::steady_clock::now();
@@ -72,6 +76,8 @@ int runListen(const ListenArgs& a) {
           h.last_error[0] != 0 ? fmt::format(" ({})", h.last_error) : "");
       if (h.recorder_state != nullptr && std::string_view(h.recorder_state) != "off")
         fmt::print("        recorder {}\n", h.recorder_state);
+      if (h.tracking_state != nullptr) fmt::print("        {}\n", h.tracking_state);
+      if (h.clock_state != nullptr) fmt::print("        stamps {}\n", h.clock_state);
       for (uint32_t i = 0; i < h.stages._length; ++i) {
         const auto& s = h.stages._buffer[i];
         fmt::print("        {:8} p50 {} us, p99 {} us, max {} us\n", s.stage, s.p50_us, s.p99_us,
@@ -95,12 +101,13 @@ int runListen(const ListenArgs& a) {
     const double t = d.header.stamp.sec + d.header.stamp.nanosec * 1e-9;
     fmt::print(
         "deform  {} frame {:6} t {:10.3f} s  displacement {:+8.4f} {:+8.4f} {:+8.4f} mm  "
-        "|v| {:6.3f} mm/s  {}/{} ok\n",
+        "|v| {:6.3f} mm/s ({:.0f} ms ago)  +-{:.4f} mm  {}/{} ok{}\n",
         d.rig_id, d.frame, t, d.displacement.x * 1e3, d.displacement.y * 1e3,
         d.displacement.z * 1e3,
         1e3 * std::sqrt(d.velocity.x * d.velocity.x + d.velocity.y * d.velocity.y +
                         d.velocity.z * d.velocity.z),
-        d.features_ok, d.features_total);
+        d.velocity_delay * 1e3, d.displacement_sigma * 1e3, d.features_ok, d.features_total,
+        d.continuous ? "" : "  (restarted)");
     std::fflush(stdout);
     if (a.count > 0 && ++shown >= a.count) break;
   }
@@ -118,7 +125,9 @@ CommandRunner addListenCommand(CLI::App& app) {
   cmd->add_option("--domain", a->domain, "DDS domain id (the daemon's dds.domain_id)")
       ->check(CLI::Range(0, 232))
       ->capture_default_str();
-  cmd->add_option("--rig", a->rig, "Only this rig id (default: every rig)");
+  cmd->add_option("--namespace", a->ns,
+                  "The daemon's topic namespace ([dds] namespace; default none)");
+  cmd->add_option("--rig", a->rig, "Only this rig id (default: the namespace's)");
   cmd->add_option("--seconds", a->seconds, "Stop after this long")->check(CLI::NonNegativeNumber);
   cmd->add_option("--count", a->count, "Stop after this many deformation lines (exit 3 if none)")
       ->check(CLI::NonNegativeNumber);

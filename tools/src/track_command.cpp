@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <charconv>
 #include <chrono>
+#include <filesystem>
 #include <fstream>
 #include <memory>
 #include <opencv2/imgcodecs.hpp>
@@ -15,6 +16,7 @@
 #include "pulsetrack/tools/commands.hpp"
 #include "pulsetrack/tools/image_pairs.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
+#include "pulsetrack/vision/tracking_session.hpp"
 
 namespace pulsetrack::tools {
 
@@ -130,7 +132,7 @@ int runMatch(const MatchArgs& a) {
     out << fmt::format(
         "{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.5f},{:.5f},{:.5f},{}\n", id++,
         c.left[0], c.left[1], c.right[0], c.right[1], c.ncc, c.nmi, c.epipolar_px, c.point[0],
-        c.point[1], c.point[2], vision::toString(c.status));
+        c.point[1], c.point[2], vision::statusText(c.status, c.gate));
   }
   if (!out) return commandError("match", fmt::format("{}: write failed", a.out));
   fmt::print("{} candidates, {} ok, written to {}\n", tracker.candidates().size(), *ok, a.out);
@@ -141,9 +143,19 @@ struct TrackArgs : CommonArgs {
   std::string input;
   std::string left;
   std::string right;
+  std::string deformation;
   double fps = 10.0;
+  double retry_interval = vision::SessionConfig{}.retry_interval_s;
+  double velocity_window = vision::SessionConfig{}.velocity_window_s;
   bool quiet = false;
 };
+
+// The deformation file: --deformation, or beside --out (track.csv -> track-deformation.csv).
+std::string deformationPath(const TrackArgs& a) {
+  if (!a.deformation.empty()) return a.deformation;
+  std::filesystem::path p(a.out);
+  return (p.parent_path() / (p.stem().string() + "-deformation.csv")).string();
+}
 
 int runTrack(const TrackArgs& a) {
   auto roi = rois(a);
@@ -174,22 +186,34 @@ int runTrack(const TrackArgs& a) {
   } else if (!reader) {
     return commandError("track", "--rig is required with image sequences");
   }
+  if (auto ok = vision::TrackingSession::checkRoi(rig, *roi, a.depth); !ok)
+    return commandError("track", ok.error().message);
   const size_t n = reader ? reader->size() : pairs.size();
-  const vision::TrackerConfig config = a.config();
-  vision::StereoTracker tracker(rig, config);
+  // The daemon's policy, the same code: detection, retries, re-detection, stereo refresh and
+  // the deformation (offline = live).
+  vision::SessionConfig sc;
+  sc.tracker = a.config();
+  sc.roi = *roi;
+  sc.depth_tolerance_mm = a.depth;
+  sc.retry_interval_s = a.retry_interval;
+  sc.velocity_window_s = a.velocity_window;
+  vision::TrackingSession session(rig, sc);
   std::vector<record::TrackRow> rows;
+  std::vector<record::DeformationRow> deformation;
   std::vector<double> step_us;
   cv::Mat left, right;
-  int initial = 0;
-  int redetections = 0;
+  int initial = -1;
+  uint64_t reason_seen = 0;
   for (size_t i = 0; i < n; ++i) {
     long frame = static_cast<long>(i);
     double t = static_cast<double>(i) / a.fps;
+    auto t_ns = static_cast<int64_t>(std::llround(t * 1e9));
     if (reader) {
       if (auto ok = reader->read(i, left, right); !ok)
         return commandError("track", ok.error().message);
       frame = static_cast<long>(reader->meta(i).frame);
-      t = static_cast<double>(reader->meta(i).t_left_ns) * 1e-9;
+      t_ns = reader->meta(i).t_left_ns;
+      t = static_cast<double>(t_ns) * 1e-9;
     } else {
       auto l = readGrey(pairs[i].first);
       if (!l) return commandError("track", l.error().message);
@@ -198,37 +222,48 @@ int runTrack(const TrackArgs& a) {
       left = *l;
       right = *r;
     }
-    if (i == 0) {
-      auto ok = tracker.initialize(left, right, *roi, a.depth);
-      if (!ok) return commandError("track", ok.error().message);
-      initial = *ok;
-      if (!a.quiet) fmt::print(stderr, "frame 0: {} features\n", initial);
-    } else {
-      const auto t0 = std::chrono::steady_clock::now();
-      tracker.track(left, right);
+    const auto t0 = std::chrono::steady_clock::now();
+    const vision::PairResult& pr =
+        session.process(left, right, reader ? reader->meta(i).trigger_seq : i, t_ns);
+    if (!pr.detected) {
       step_us.push_back(
           std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count());
-      if (tracker.needsRedetection()) {
-        // Too few left (a long occlusion, the surface moved out of the ROI): detect again.
-        auto ok = tracker.redetect(left, right);
-        if (!ok) return commandError("track", ok.error().message);
-        ++redetections;
-        if (!a.quiet)
-          fmt::print(stderr, "frame {}: too few features ok, re-detected {}\n", frame, *ok);
-      }
     }
-    for (const vision::Feature& f : tracker.features()) {
+    if (session.reasonSerial() != reason_seen && !session.reason().empty()) {
+      reason_seen = session.reasonSerial();
+      if (!a.quiet) fmt::print(stderr, "frame {}: not tracking: {}\n", frame, session.reason());
+    }
+    if (pr.detected && !a.quiet) {
+      fmt::print(stderr, "frame {}: {} features {}\n", frame, session.tracker().okCount(),
+                 initial < 0 ? "detected" : "re-detected (too few ok)");
+    }
+    if (pr.detected && initial < 0) initial = session.tracker().okCount();
+    for (const vision::Feature& f : pr.features) {
       rows.push_back({frame, t, f.id, f.left[0], f.left[1], f.right[0], f.right[1], f.point[0],
-                      f.point[1], f.point[2], f.ncc, f.nmi, vision::toString(f.status)});
+                      f.point[1], f.point[2], f.ncc, f.nmi, vision::statusText(f.status, f.gate)});
+    }
+    if (const vision::Deformation& d = pr.deformation; d.valid) {
+      deformation.push_back({frame, t, d.displacement[0], d.displacement[1], d.displacement[2],
+                             d.velocity[0], d.velocity[1], d.velocity[2], d.velocity_delay_s,
+                             d.displacement_sigma_mm, d.velocity_sigma_mm_s, d.centroid[0],
+                             d.centroid[1], d.centroid[2], d.ok, d.total,
+                             static_cast<int>(d.detections), d.continuous});
     }
     // As the daemon does once a pair's result is out: match some features' stereo again.
-    tracker.refreshStereo(left, right);
+    session.afterPublish(left, right);
     if (!a.quiet && (i + 1) % 50 == 0) {
-      fmt::print(stderr, "frame {}/{}: {} of {} features ok\n", i + 1, n, tracker.okCount(),
-                 tracker.features().size());
+      fmt::print(stderr, "frame {}/{}: {} of {} features ok\n", i + 1, n,
+                 session.tracker().okCount(), session.tracker().features().size());
     }
   }
+  if (initial < 0) {
+    return commandError("track",
+                        fmt::format("no features in any of the {} pairs: {}", n, session.reason()));
+  }
   if (auto ok = record::writeTrackCsv(a.out, rows); !ok)
+    return commandError("track", ok.error().message);
+  const std::string def_path = deformationPath(a);
+  if (auto ok = record::writeDeformationCsv(def_path, deformation); !ok)
     return commandError("track", ok.error().message);
   std::sort(step_us.begin(), step_us.end());
   const auto pct = [&](double p) {
@@ -239,11 +274,12 @@ int runTrack(const TrackArgs& a) {
   };
   fmt::print(
       "frames            {}\n"
-      "features          {} at frame 0, {} ok at the last frame, {} re-detections\n"
-      "per-frame step    p50 {:.0f} us, p99 {:.0f} us, max {:.0f} us\n"
-      "track written to  {}\n",
-      n, initial, tracker.okCount(), redetections, pct(0.5), pct(0.99),
-      step_us.empty() ? 0.0 : step_us.back(), a.out);
+      "features          {} at the first detection, {} ok at the last frame, {} re-detections\n"
+      "per-frame step    p50 {:.0f} us, p99 {:.0f} us, max {:.0f} us (pairs without detection)\n"
+      "track written to  {}\n"
+      "deformation       {} ({} pairs)\n",
+      n, initial, session.tracker().okCount(), session.redetections(), pct(0.5), pct(0.99),
+      step_us.empty() ? 0.0 : step_us.back(), a.out, def_path, deformation.size());
   return 0;
 }
 
@@ -272,6 +308,17 @@ CommandRunner addTrackCommand(CLI::App& app) {
   cmd->add_option("--right", args->right, "Right images, a quoted glob");
   cmd->add_option("--fps", args->fps, "Frame rate of an image sequence")
       ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_option("--deformation", args->deformation,
+                  "The surface's deformation per pair, as pulsetrackd publishes it (default: "
+                  "beside --out, NAME-deformation.csv)");
+  cmd->add_option("--retry-interval", args->retry_interval,
+                  "Seconds between detections while none finds features")
+      ->check(CLI::Range(0.05, 3600.0))
+      ->capture_default_str();
+  cmd->add_option("--velocity-window", args->velocity_window,
+                  "The velocity's least-squares window (s); its group delay is in the file")
+      ->check(CLI::Range(0.0, 10.0))
       ->capture_default_str();
   cmd->add_flag("-q,--quiet", args->quiet, "No progress lines");
   return [args] { return runTrack(*args); };

@@ -28,6 +28,43 @@ const char* toString(FeatureStatus s) noexcept {
   return "unknown";
 }
 
+const char* toString(Gate g) noexcept {
+  switch (g) {
+    case Gate::kNone:
+      return "none";
+    case Gate::kNcc:
+      return "ncc";
+    case Gate::kNccDrop:
+      return "ncc_drop";
+    case Gate::kNmi:
+      return "nmi";
+    case Gate::kGlint:
+      return "glint";
+    case Gate::kSheen:
+      return "sheen";
+    case Gate::kNoPeak:
+      return "no_peak";
+    case Gate::kNotConverged:
+      return "not_converged";
+    case Gate::kImageBorder:
+      return "image_border";
+    case Gate::kEpipolar:
+      return "epipolar";
+    case Gate::kSurface:
+      return "surface";
+    case Gate::kTriangulation:
+      return "triangulation";
+    case Gate::kStereoNcc:
+      return "stereo_ncc";
+  }
+  return "unknown";
+}
+
+std::string statusText(FeatureStatus s, Gate g) {
+  if (s == FeatureStatus::kOk || g == Gate::kNone) return toString(s);
+  return std::string(toString(s)) + ":" + toString(g);
+}
+
 namespace {
 
 constexpr int kHalf = kAffineHalf;  // 15x15 templates
@@ -357,6 +394,7 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     c.right = {pl.x + sx0 + peak.i + peak.sub.dx, pl.y + sy0 + peak.j + peak.sub.dy};
     if (!peak.interior) {
       c.status = FeatureStatus::kLost;
+      c.gate = Gate::kNoPeak;
       candidates_.push_back(c);
       continue;
     }
@@ -400,16 +438,24 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     c.epipolar_px = rig_.epipolarDistances(c.left, c.right)[0];
     const Triangulation t = triangulate(rig_, c.left, c.right);
     c.point = t.point;
+    const auto reject = [&c](FeatureStatus st, Gate g) {
+      c.status = st;
+      c.gate = g;
+    };
     if (!refined) {
-      c.status = FeatureStatus::kLost;
-    } else if (c.ncc < (config_.refinement ? std::max(config_.min_ncc, config_.min_stereo_ncc)
-                                           : config_.min_ncc) ||
-               c.nmi < config_.min_nmi || glint) {
-      c.status = FeatureStatus::kOccluded;
+      reject(FeatureStatus::kLost, Gate::kNotConverged);
+    } else if (c.ncc < config_.min_ncc) {
+      reject(FeatureStatus::kOccluded, Gate::kNcc);
+    } else if (config_.refinement && c.ncc < config_.min_stereo_ncc) {
+      reject(FeatureStatus::kOccluded, Gate::kStereoNcc);
+    } else if (c.nmi < config_.min_nmi) {
+      reject(FeatureStatus::kOccluded, Gate::kNmi);
+    } else if (glint) {
+      reject(FeatureStatus::kOccluded, Gate::kGlint);
     } else if (c.epipolar_px > config_.max_epipolar_px) {
-      c.status = FeatureStatus::kOutlierEpipolar;
+      reject(FeatureStatus::kOutlierEpipolar, Gate::kEpipolar);
     } else if (!t.ok) {
-      c.status = FeatureStatus::kOutlierTriangulation;
+      reject(FeatureStatus::kOutlierTriangulation, Gate::kTriangulation);
     }
     candidates_.push_back(c);
     if (c.status != FeatureStatus::kOk) continue;
@@ -419,10 +465,14 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     if (pr.x - kHalf < 0 || pr.y - kHalf < 0 || pr.x + kHalf >= right.cols ||
         pr.y + kHalf >= right.rows ||
         !s.ncc[1].set(right.ptr<uint8_t>(pr.y - kHalf) + pr.x - kHalf, right.step, kSide, kSide)) {
+      candidates_.back().status = FeatureStatus::kLost;
+      candidates_.back().gate = Gate::kImageBorder;
       continue;
     }
     if (!s.shift[0].set(left.data, left.step, left.cols, left.rows, c.left) ||
         !s.shift[1].set(right.data, right.step, right.cols, right.rows, c.right)) {
+      candidates_.back().status = FeatureStatus::kLost;
+      candidates_.back().gate = Gate::kImageBorder;
       continue;
     }
     // The frame-0 patches' NMI bins, once: track() compares every match with them.
@@ -430,6 +480,8 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     const uint8_t* t1 = nullptr;
     if (!patchAt(left, c.left, t0) || !patchAt(right, c.right, t1) ||
         !s.nmi[0].set(t0, left.step, kSide, kSide) || !s.nmi[1].set(t1, right.step, kSide, kSide)) {
+      candidates_.back().status = FeatureStatus::kLost;
+      candidates_.back().gate = Gate::kImageBorder;
       continue;
     }
     Feature f;
@@ -478,6 +530,7 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     if (!(states_[i].view_gain > 0.0) ||
         std::abs(ratios[i] / states_[i].view_gain - 1.0) > config_.max_sheen) {
       candidates_[candidate_of_feature[i]].status = FeatureStatus::kOccluded;
+      candidates_[candidate_of_feature[i]].gate = Gate::kSheen;
       continue;
     }
     features_[kept] = features_[i];
@@ -491,8 +544,10 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
   residuals_.resize(std::max<size_t>(features_.size(), 1));
   surfaceGate();
   // Report the surface gate's verdicts on the candidates too.
-  for (size_t i = 0; i < features_.size(); ++i)
+  for (size_t i = 0; i < features_.size(); ++i) {
     candidates_[candidate_of_feature[i]].status = features_[i].status;
+    candidates_[candidate_of_feature[i]].gate = features_[i].gate;
+  }
   next_id_ += static_cast<int>(features_.size());
   roi_ = roi;
   depth_tolerance_mm_ = depth_tolerance_mm;
@@ -552,7 +607,7 @@ bool StereoTracker::searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& l
   return true;
 }
 
-bool StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
+Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
                                 double& nmi) noexcept {
   const cv::Vec2d last = at;
   cv::Vec2d pos = last;
@@ -570,22 +625,22 @@ bool StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
     }
   }
   if (!found) {
-    if (!searchCamera(cam, img, last, s, pos, ncc)) return false;
+    if (!searchCamera(cam, img, last, s, pos, ncc)) return Gate::kNoPeak;
     if (config_.refinement) {
       const AffineResult ar = s.shift[cam].refine(img.data, img.step, img.cols, img.rows, pos);
-      if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return false;
+      if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return Gate::kNotConverged;
       pos = ar.warp.centre;
     }
   }
   const uint8_t* patch = nullptr;
-  if (!patchAt(img, pos, patch)) return false;
+  if (!patchAt(img, pos, patch)) return Gate::kImageBorder;
   // NMI between the frame-0 template and the patch at the match.
   nmi = s.nmi[cam].score(patch, img.step);
+  at = pos;
   // A glint over the feature (they move as the surface breathes) gates this frame.
   if (neighbourhoodMax(img, pos, config_.specular_margin_px) >= config_.specular_threshold)
-    nmi = 0.0;
-  at = pos;
-  return true;
+    return Gate::kGlint;
+  return Gate::kNone;
 }
 
 void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
@@ -594,42 +649,49 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
     State& s = states_[i];
     const cv::Vec2d prev_left = f.left, prev_right = f.right, prev_track = s.right_track;
     double ncc_l = 0, ncc_r = 0, nmi_l = 0, nmi_r = 0;
-    const bool ok_l = trackCamera(0, left, f.left, s, ncc_l, nmi_l);
-    const bool ok_r = trackCamera(1, right, s.right_track, s, ncc_r, nmi_r);
+    const Gate gate_l = trackCamera(0, left, f.left, s, ncc_l, nmi_l);
+    const Gate gate_r = trackCamera(1, right, s.right_track, s, ncc_r, nmi_r);
     f.right = s.right_track + s.stereo_offset;
     f.ncc = std::min(ncc_l, ncc_r);
     f.nmi = std::min(nmi_l, nmi_r);
-    const auto keep_last = [&](FeatureStatus why) {
+    const auto keep_last = [&](FeatureStatus why, Gate gate) {
       // An occluded or lost feature stays where it was last seen, so it is found again there.
       f.left = prev_left;
       f.right = prev_right;
       s.right_track = prev_track;
       f.status = why;
+      f.gate = gate;
     };
-    if (!ok_l || !ok_r) {
-      keep_last(FeatureStatus::kLost);
+    const auto lost = [](Gate g) { return g != Gate::kNone && g != Gate::kGlint; };
+    if (lost(gate_l) || lost(gate_r)) {
+      keep_last(FeatureStatus::kLost, lost(gate_l) ? gate_l : gate_r);
       continue;
     }
     const auto dropped = [&](int cam, double ncc) {
       return s.ncc_level[cam] > 0.0 && ncc < s.ncc_level[cam] - config_.max_ncc_drop;
     };
-    if (f.ncc < config_.min_ncc || f.nmi < config_.min_nmi || dropped(0, ncc_l) ||
-        dropped(1, ncc_r)) {
-      keep_last(FeatureStatus::kOccluded);
+    const Gate occluded = f.ncc < config_.min_ncc                            ? Gate::kNcc
+                          : gate_l == Gate::kGlint || gate_r == Gate::kGlint ? Gate::kGlint
+                          : f.nmi < config_.min_nmi                          ? Gate::kNmi
+                          : dropped(0, ncc_l) || dropped(1, ncc_r)           ? Gate::kNccDrop
+                                                                             : Gate::kNone;
+    if (occluded != Gate::kNone) {
+      keep_last(FeatureStatus::kOccluded, occluded);
       continue;
     }
     f.epipolar_px = rig_.epipolarDistances(f.left, f.right)[0];
     if (f.epipolar_px > config_.max_epipolar_px) {
-      keep_last(FeatureStatus::kOutlierEpipolar);
+      keep_last(FeatureStatus::kOutlierEpipolar, Gate::kEpipolar);
       continue;
     }
     const Triangulation t = triangulate(rig_, f.left, f.right);
     if (!t.ok) {
-      keep_last(FeatureStatus::kOutlierTriangulation);
+      keep_last(FeatureStatus::kOutlierTriangulation, Gate::kTriangulation);
       continue;
     }
     f.point = t.point;
     f.status = FeatureStatus::kOk;
+    f.gate = Gate::kNone;
     // The NCC level follows slow changes (illumination, deformation) over ~20 frames.
     for (int cam = 0; cam < 2; ++cam) {
       const double ncc = cam == 0 ? ncc_l : ncc_r;
@@ -725,8 +787,10 @@ void StereoTracker::surfaceGate() noexcept {
   const double limit =
       std::max(config_.max_surface_mm, med + config_.surface_mad_factor * 1.4826 * mad);
   for (Feature& f : features_) {
-    if (f.status == FeatureStatus::kOk && residual(f) > limit)
+    if (f.status == FeatureStatus::kOk && residual(f) > limit) {
       f.status = FeatureStatus::kOutlierSurface;
+      f.gate = Gate::kSurface;
+    }
   }
 }
 

@@ -55,6 +55,15 @@ struct MotionAnalysis {
 
 vision::Result<MotionAnalysis> analyzeMotion(const std::vector<record::TrackRow>& rows,
                                              const MotionOptions& options = {});
+// The same analysis on the TrackingSession's deformation (`pulsetrack track --deformation`, the
+// signal pulsetrackd publishes): no feature speeds (they need the track).
+vision::Result<MotionAnalysis> analyzeMotion(const std::vector<record::DeformationRow>& rows,
+                                             const MotionOptions& options = {});
+// The analysis of a displacement series (t in s, increasing; mm).
+vision::Result<MotionAnalysis> analyzeSeries(const std::vector<double>& t,
+                                             const std::vector<Vec3>& displacement, int features,
+                                             const std::vector<double>& speeds,
+                                             const MotionOptions& options = {});
 
 // A natural cubic spline through (x, y), x increasing, evaluated at `at`.
 std::vector<double> naturalCubicSpline(const std::vector<double>& x, const std::vector<double>& y,

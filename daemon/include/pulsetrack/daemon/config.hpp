@@ -4,6 +4,7 @@
 #include <filesystem>
 #include <string>
 
+#include "pulsetrack/dds/dds.hpp"
 #include "pulsetrack/drivers/source.hpp"
 #include "pulsetrack/drivers/v4l2.hpp"
 #include "pulsetrack/rt/thread_policy.hpp"
@@ -18,6 +19,8 @@ enum class Pace { kRealtime, kFast, kRate };
 struct DaemonConfig {
   std::string rig_id = "rig-0";
   uint32_t domain_id = 0;
+  std::string ros_namespace;  // [dds] namespace: one rig per topic namespace (ROS 2's)
+  dds::Topics topics = *dds::Topics::forNamespace("");
   SourceKind source = SourceKind::kSim;
   std::filesystem::path scene;      // sim: resolved against the config file's folder
   std::filesystem::path recording;  // replay
@@ -25,6 +28,9 @@ struct DaemonConfig {
   Pace pace = Pace::kRealtime;
   bool loop = true;
   bool preload = false;
+  // replay: hand over the next pair only when the last one is published (no pair dropped, at
+  // the tracker's pace): the live pipeline's output for every pair of a recording.
+  bool lossless = false;
   drivers::SimFaults sim_faults;  // [source.faults]
   // v4l2: the two cameras ([source.left], [source.right]) and the rig's calibration.
   drivers::V4l2CameraConfig left_camera, right_camera;
@@ -41,6 +47,8 @@ struct DaemonConfig {
   int record_slots = 32;
   vision::Roi roi{{483, 339, 400, 340}, {476, 344, 400, 340}};
   double depth_tolerance_mm = 20.0;
+  double retry_interval_s = 1.0;    // between detections that found nothing
+  double velocity_window_s = 0.25;  // the published velocity's least-squares window
   vision::TrackerConfig tracker;
   bool lock_memory = true;
   double deadline_ms = 20.0;

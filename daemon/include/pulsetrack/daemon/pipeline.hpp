@@ -4,11 +4,13 @@
 // counted), each stage beating a heartbeat and filling a latency histogram.
 //
 //   capture: source.next() into a frame slot          -> frames_   (drop when track is slow)
-//   track:   StereoTracker (initialize on the first pair, then track(); re-detection when too
-//            few remain), features copied into a preallocated result  -> results_ (drop)
-//   publish: DDS features and deformation per result; the health sample, systemd STATUS and
-//            the watchdog ping from health() called by the main thread.
+//   track:   vision::TrackingSession (detection, retries, re-detection, the deformation), its
+//            result copied into a preallocated slot                -> results_ (drop)
+//   publish: converts each result to DDS features and deformation (stamped on the system clock)
+//            and sends them; the health sample, systemd STATUS and the watchdog ping from
+//            health() called by the main thread, which also re-measures the system clock.
 
+#include <array>
 #include <atomic>
 #include <memory>
 #include <string>
@@ -23,7 +25,8 @@
 #include "pulsetrack/rt/heartbeat.hpp"
 #include "pulsetrack/rt/latency_histogram.hpp"
 #include "pulsetrack/rt/latest_slot.hpp"
-#include "pulsetrack/vision/stereo_tracker.hpp"
+#include "pulsetrack/rt/system_clock.hpp"
+#include "pulsetrack/vision/tracking_session.hpp"
 
 namespace pulsetrack::daemon {
 
@@ -34,12 +37,19 @@ struct Frame {
 
 struct TrackResult {
   uint64_t trigger_seq = 0;
-  int64_t t_ns = 0;  // trigger time
+  int64_t t_ns = 0;  // the pair's exposure (monotonic)
   int64_t captured_ns = 0;
   int64_t tracked_ns = 0;
   std::vector<vision::Feature> features;  // capacity reserved at start
-  int ok = 0;
-  bool redetected = false;  // the features are new: the deformation's reference moves
+  vision::Deformation deformation;
+  bool detected = false;  // the features are new
+};
+
+// The session's reason for not tracking, for health: fixed, so that copying it allocates nothing.
+struct TrackingText {
+  std::array<char, 512> text{};
+  size_t size = 0;
+  vision::SessionState state = vision::SessionState::kNoFeatures;
 };
 
 // A recording's folder name: RIG-YYYYmmdd-HHMMSS (UTC).
@@ -65,8 +75,10 @@ class Pipeline {
   // Called periodically by the main thread: publishes health, updates STATUS, pings the
   // watchdog while every stage is on time. Returns the state it published.
   State health(const Notifier& notifier);
+  // The stamps' clock (tests compare it with their own reading of CLOCK_REALTIME).
+  [[nodiscard]] const rt::SystemClock& clock() const { return clock_; }
 
-  [[nodiscard]] bool trackedOnce() const { return tracked_.load() > 0; }
+  [[nodiscard]] bool trackedOnce() const { return processed_.load() > 0; }
   [[nodiscard]] uint64_t tracked() const { return tracked_.load(); }
   // Test hook: stall the track stage (the watchdog must notice).
   void stallTrackFor(std::chrono::milliseconds d) { stall_ms_.store(d.count()); }
@@ -94,9 +106,14 @@ class Pipeline {
   rt::LatestSlot<Frame> frames_;
   rt::LatestSlot<TrackResult> results_;
   std::atomic<uint64_t> frames_seq_{0}, results_seq_{0};  // wake-ups (futex, no lock)
+  std::atomic<uint64_t> consumed_{0};  // pairs done with (published or not tracked): lossless
+  uint64_t handed_ = 0;                // capture thread: pairs handed to the track stage
   rt::Heartbeat capture_beat_, track_beat_, publish_beat_;
   rt::LatencyHistogram capture_lat_, track_lat_, publish_lat_;
-  std::atomic<uint64_t> tracked_{0}, deadline_misses_{0};
+  std::atomic<uint64_t> tracked_{0}, processed_{0}, deadline_misses_{0};
+  rt::SystemClock clock_;
+  rt::LatestSlot<TrackingText> tracking_text_;  // track -> health, on a change
+  TrackingText last_tracking_;                  // health thread's copy
   std::atomic<bool> running_{false};
   std::atomic<int64_t> stall_ms_{0};
   struct RoiRequest {

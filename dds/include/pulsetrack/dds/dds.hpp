@@ -1,14 +1,16 @@
 #pragma once
 // A thin, move-only C++ layer over Cyclone DDS's C API (types from msgs/idl by idlc).
-// Topic names follow ROS 2 (rt/pulsetrack/...), QoS the ROS 2 profiles the issue names:
-// sensor data (best effort, keep last 5, volatile) for the streams, reliable transient-local
-// (keep last 1) for health, reliable keep-last-10 for commands.
+// Topic names follow ROS 2 (rt/[<namespace>/]pulsetrack/..., one rig per namespace: the types
+// are keyless, as ROS 2's), QoS the ROS 2 profiles (docs/ros2.md): sensor data (best effort,
+// keep last 5, volatile) for the streams, reliable transient-local (keep last 1) for health,
+// reliable keep-last-10 for commands.
 
 #include <dds/dds.h>
 
 #include <chrono>
 #include <cstdint>
 #include <string>
+#include <string_view>
 
 #include "pulsetrack/vision/error.hpp"
 #include "pulsetrack_msgs.h"
@@ -17,10 +19,20 @@ namespace pulsetrack::dds {
 
 using vision::Result;
 
+// The DDS topic names of one rig: rt/<namespace>/pulsetrack/<leaf>, or rt/pulsetrack/<leaf>
+// without a namespace, as ROS 2 names the topic /<namespace>/pulsetrack/<leaf>.
+// Without a namespace (the default).
 inline constexpr const char* kFeaturesTopic = "rt/pulsetrack/features";
 inline constexpr const char* kDeformationTopic = "rt/pulsetrack/deformation";
 inline constexpr const char* kHealthTopic = "rt/pulsetrack/health";
 inline constexpr const char* kCommandTopic = "rt/pulsetrack/command";
+struct Topics {
+  std::string features, deformation, health, command;
+  // The namespace follows ROS 2's rules for names: segments of letters, digits and underscores
+  // separated by '/', none starting with a digit; a leading '/' is allowed (ROS 2's absolute
+  // form), a trailing one is not. Empty: no namespace.
+  static Result<Topics> forNamespace(std::string_view ns);
+};
 
 // A CYCLONEDDS_URI that keeps DDS on loopback (no multicast, the local peer named): tests,
 // benchmarks and the demo, so that they disturb no one on the network.
@@ -67,6 +79,8 @@ class Writer {
   Result<void> write(const void* sample) const;
   // Readers currently matched (discovery), for health and tests.
   [[nodiscard]] int matchedReaders() const;
+  // Waits until every matched reliable reader acknowledged what was written (false: timeout).
+  [[nodiscard]] bool waitForAcks(std::chrono::milliseconds timeout) const;
 
  private:
   Entity topic_, writer_;

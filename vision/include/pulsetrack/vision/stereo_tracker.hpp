@@ -20,6 +20,7 @@
 #include <cstdint>
 #include <opencv2/core.hpp>
 #include <span>
+#include <string>
 #include <vector>
 
 #include "pulsetrack/vision/affine_refiner.hpp"
@@ -38,6 +39,27 @@ enum class FeatureStatus : uint8_t {
   kOutlierTriangulation,
 };
 const char* toString(FeatureStatus s) noexcept;
+
+// The gate that rejected a feature or candidate (the status says what it means for the feature,
+// this says which test spoke). The values are the DDS/ROS 2 Feature.msg REASON_* constants.
+enum class Gate : uint8_t {
+  kNone = 0,       // passed every gate
+  kNcc,            // NCC below min_ncc
+  kNccDrop,        // NCC below the feature's own running level by more than max_ncc_drop
+  kNmi,            // NMI with the first pair's patch below min_nmi
+  kGlint,          // a pixel over specular_threshold in the patch or its margin
+  kSheen,          // brighter in one view than the local gain ratio allows (max_sheen)
+  kNoPeak,         // the NCC maximum on the search window's border: no peak inside
+  kNotConverged,   // the sub-pixel refinement did not converge, or left the peak
+  kImageBorder,    // the patch leaves the image
+  kEpipolar,       // farther than max_epipolar_px from the epipolar line
+  kSurface,        // farther from the fitted parabola than max_surface_mm / the MAD limit
+  kTriangulation,  // the rays do not meet in front of the cameras
+  kStereoNcc,      // the left-right match's NCC below min_stereo_ncc
+};
+const char* toString(Gate g) noexcept;
+// "ok", or the status and the gate: "occluded:glint".
+std::string statusText(FeatureStatus s, Gate g);
 
 enum class Detector : uint8_t {
   kHarris,     // the paper's: Harris corners on tissue (vessels)
@@ -104,7 +126,8 @@ struct Roi {
 struct Feature {
   int id = 0;
   FeatureStatus status = FeatureStatus::kOk;
-  cv::Vec2d left;  // current pixel positions
+  Gate gate = Gate::kNone;  // why, when not ok
+  cv::Vec2d left;           // current pixel positions
   cv::Vec2d right;
   cv::Vec3d point;   // current 3D position in {C}, mm
   cv::Vec3d point0;  // at the first frame
@@ -119,6 +142,7 @@ struct StereoCandidate {
   double ncc = 0, nmi = 0, epipolar_px = 0;
   cv::Vec3d point;
   FeatureStatus status = FeatureStatus::kOk;
+  Gate gate = Gate::kNone;
 };
 
 class StereoTracker {
@@ -170,8 +194,9 @@ class StereoTracker {
   };
   bool searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s, cv::Vec2d& pos,
                     double& ncc) noexcept;
-  // Matches camera `cam`'s frame-0 template near `at` and moves `at` to the match.
-  bool trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
+  // Matches camera `cam`'s frame-0 template near `at` and moves `at` to the match. Returns the
+  // gate that failed (kNone: found; kGlint: found, but a glint is on it).
+  Gate trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
                    double& nmi) noexcept;
   void surfaceGate() noexcept;
   // Candidate positions in ROI coordinates (sub-pixel for blobs).

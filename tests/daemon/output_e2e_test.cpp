@@ -1,0 +1,280 @@
+// What leaves the appliance, met the way its users meet it:
+// - a ROS 2 node: tests/ros2_compat/ros2_subscriber, built from the .msg files as ROS 2's
+//   Cyclone RMW registers them (keyless, XCDR1, no type information, ROS 2's QoS profiles; it
+//   shares no code with the daemon) receives features, deformation and health on a rig's
+//   namespaced topics, stamped on the system clock, and nothing of another rig on the same
+//   domain under another namespace;
+// - the research team: the same recording through the daemon (replay, no pair dropped) and
+//   through `pulsetrack track` gives the same features and the same deformation, bit for bit.
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <csignal>
+#include <ctime>
+#include <map>
+#include <sstream>
+
+#include "daemon/daemon_process.hpp"
+#include "pulsetrack/record/recording.hpp"
+#include "pulsetrack/record/track_csv.hpp"
+#include "test_util.hpp"
+
+namespace pulsetrack {
+namespace {
+
+double realtimeNow() {
+  timespec ts{};
+  clock_gettime(CLOCK_REALTIME, &ts);
+  return static_cast<double>(ts.tv_sec) + static_cast<double>(ts.tv_nsec) * 1e-9;
+}
+
+// "key=value" fields of one line of ros2_subscriber's output.
+std::map<std::string, std::string> fields(const std::string& line) {
+  std::map<std::string, std::string> out;
+  std::istringstream ss(line);
+  std::string word;
+  while (ss >> word) {
+    const size_t eq = word.find('=');
+    if (eq != std::string::npos) out[word.substr(0, eq)] = word.substr(eq + 1);
+  }
+  return out;
+}
+
+struct Received {
+  int exit_code = -1;
+  std::string output;
+  std::vector<std::map<std::string, std::string>> features, deformation, health;
+};
+
+Received subscribe(uint32_t domain, const std::string& ns, int features, int deformation,
+                   int health, int timeout_s) {
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+  std::string cmd = std::string(ROS2_SUBSCRIBER) + " --domain " + std::to_string(domain);
+  if (!ns.empty()) cmd += " --namespace " + ns;
+  cmd += " --features " + std::to_string(features) + " --deformation " +
+         std::to_string(deformation) + " --health " + std::to_string(health) + " --timeout " +
+         std::to_string(timeout_s);
+  const test::CommandResult r = test::run(cmd);
+  Received got;
+  got.exit_code = r.exit_code;
+  got.output = r.output;
+  std::istringstream lines(r.output);
+  std::string line;
+  while (std::getline(lines, line)) {
+    if (line.rfind("features ", 0) == 0) got.features.push_back(fields(line));
+    if (line.rfind("deformation ", 0) == 0) got.deformation.push_back(fields(line));
+    if (line.rfind("health ", 0) == 0) got.health.push_back(fields(line));
+  }
+  return got;
+}
+
+double stampOf(const std::map<std::string, std::string>& f) {
+  return std::stod(f.at("sec")) + std::stod(f.at("nanosec")) * 1e-9;
+}
+
+TEST(Ros2Output, ANodeBuiltFromTheMsgFilesReceivesANamespacedRigAndNothingOfAnother) {
+  test::TempDir dir;
+  const uint32_t domain = 86;
+  DaemonOptions a, b;
+  a.rig = "rig-a";
+  a.ros_namespace = "or1";
+  a.name = "a";
+  b.rig = "rig-b";
+  b.ros_namespace = "/site/or2";  // ROS 2's absolute form
+  b.name = "b";
+  Daemon da(dir, domain, {"--run-for", "120"}, "", {}, a);
+  Daemon db(dir, domain, {"--run-for", "120"}, "", {}, b);
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  const double before = realtimeNow();
+  const Received ra = subscribe(domain, "or1", 10, 10, 1, 90);
+  const double after = realtimeNow();
+  const Received rb = subscribe(domain, "site/or2", 3, 3, 1, 90);
+  // Nobody publishes without a namespace here: a node there hears nothing.
+  const Received none = subscribe(domain, "", 1, 0, 0, 3);
+  kill(da.pid, SIGTERM);
+  kill(db.pid, SIGTERM);
+  EXPECT_EQ(da.wait(secs), 0);
+  EXPECT_EQ(db.wait(secs), 0);
+  std::cout << "or1: " << ra.features.size() << " features, " << ra.deformation.size()
+            << " deformation, " << ra.health.size()
+            << " health samples; site/or2: " << rb.features.size() << ", " << rb.deformation.size()
+            << ", " << rb.health.size() << "\n";
+  ASSERT_EQ(ra.exit_code, 0) << ra.output;
+  ASSERT_EQ(rb.exit_code, 0) << rb.output;
+  EXPECT_GE(ra.features.size(), 10U);
+  EXPECT_GE(ra.deformation.size(), 10U);
+  EXPECT_GE(ra.health.size(), 1U);
+  for (const auto* set : {&ra.features, &ra.deformation, &ra.health})
+    for (const auto& f : *set) EXPECT_EQ(f.at("rig"), "rig-a") << ra.output;
+  for (const auto* set : {&rb.features, &rb.deformation, &rb.health})
+    for (const auto& f : *set) EXPECT_EQ(f.at("rig"), "rig-b") << rb.output;
+  // The stamps are on the system clock: every one lies between this test's CLOCK_REALTIME
+  // readings around the subscription (less the pipeline's and the transport's latency).
+  for (const auto& f : ra.features) {
+    const double t = stampOf(f);
+    EXPECT_GT(t, before - 5.0) << "stamp " << t << ", subscribed at " << before;
+    EXPECT_LT(t, after) << "stamp " << t << ", done at " << after;
+  }
+  double max_features_ok = 0;
+  size_t with_velocity = 0;  // every sample but the signal's first has its velocity's delay
+  for (const auto& d : ra.deformation) {
+    with_velocity += std::stod(d.at("velocity_delay")) > 0.0 ? 1 : 0;
+    max_features_ok = std::max(max_features_ok, std::stod(d.at("ok")));
+  }
+  EXPECT_GE(with_velocity + 1, ra.deformation.size());
+  EXPECT_GT(max_features_ok, 10);
+  EXPECT_EQ(none.exit_code, 1) << none.output;
+  EXPECT_TRUE(none.features.empty()) << none.output;
+}
+
+// Every pair of a recording through pulsetrackd (replay, lossless: none dropped) and through
+// `pulsetrack track`: the same features (ids, statuses, positions) and the same deformation.
+TEST(OfflineEqualsLive, TheDaemonAndTrackGiveTheSameSignalForEveryPair) {
+  test::TempDir dir;
+  const uint32_t domain = 87;
+  const std::string rec = dir / "rec";
+  auto made = test::run(test::cli() + " simulate --scene " + kScene + " --out " + rec +
+                        " --frames 50 --supersample 1 -q");
+  ASSERT_EQ(made.exit_code, 0) << made.output;
+  auto reader = record::Reader::open(rec);
+  ASSERT_TRUE(reader) << reader.error().message;
+  std::map<uint64_t, long> frame_of;  // trigger_seq -> the recording's frame
+  for (size_t i = 0; i < reader->size(); ++i)
+    frame_of[reader->meta(i).trigger_seq] = static_cast<long>(reader->meta(i).frame);
+  // The daemon: a raw keep-all best-effort reader (the writer is best effort), every sample.
+  setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
+  auto p = dds::Participant::create(domain);
+  ASSERT_TRUE(p) << p.error().message;
+  dds_qos_t* qos = dds_create_qos();
+  dds_qset_reliability(qos, DDS_RELIABILITY_BEST_EFFORT, 0);
+  dds_qset_history(qos, DDS_HISTORY_KEEP_ALL, 0);
+  const dds_entity_t ft = dds_create_topic(p->get(), &pulsetrack_msgs_msg_dds__Features__desc,
+                                           dds::kFeaturesTopic, nullptr, nullptr);
+  const dds_entity_t dt = dds_create_topic(p->get(), &pulsetrack_msgs_msg_dds__Deformation__desc,
+                                           dds::kDeformationTopic, nullptr, nullptr);
+  const dds_entity_t fr = dds_create_reader(p->get(), ft, qos, nullptr);
+  const dds_entity_t dr = dds_create_reader(p->get(), dt, qos, nullptr);
+  dds_delete_qos(qos);
+  ASSERT_GT(fr, 0);
+  ASSERT_GT(dr, 0);
+  Daemon d(dir, domain, {"--run-for", "300"},
+           "kind = \"replay\"\nrecording = \"" + rec +
+               "\"\npace = \"realtime\"\nloop = false\nlossless = true\n");
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  std::map<long, std::vector<pulsetrack_msgs_msg_dds__Feature_>> live_features;
+  std::map<long, pulsetrack_msgs_msg_dds__Deformation_> live_def;
+  const size_t last_frame = reader->size();
+  while (secs() < 240.0 && live_features.size() < last_frame) {
+    d.drain(secs());
+    void* samples[1] = {nullptr};
+    dds_sample_info_t info[1];
+    bool any = false;
+    while (dds_take(fr, samples, info, 1, 1) > 0) {
+      any = true;
+      if (info[0].valid_data) {
+        const auto* s = static_cast<const pulsetrack_msgs_msg_dds__Features_*>(samples[0]);
+        auto& v = live_features[frame_of.at(s->frame)];
+        v.assign(s->features._buffer, s->features._buffer + s->features._length);
+      }
+      dds_return_loan(fr, samples, 1);
+      samples[0] = nullptr;
+    }
+    while (dds_take(dr, samples, info, 1, 1) > 0) {
+      any = true;
+      if (info[0].valid_data) {
+        const auto* s = static_cast<const pulsetrack_msgs_msg_dds__Deformation_*>(samples[0]);
+        live_def[frame_of.at(s->frame)] = *s;
+        live_def[frame_of.at(s->frame)].rig_id = nullptr;  // not kept past the loan
+        live_def[frame_of.at(s->frame)].header.frame_id = nullptr;
+      }
+      dds_return_loan(dr, samples, 1);
+      samples[0] = nullptr;
+    }
+    if (!any) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));  // the last deformation
+  void* samples[1] = {nullptr};
+  dds_sample_info_t info[1];
+  while (dds_take(dr, samples, info, 1, 1) > 0) {
+    if (info[0].valid_data) {
+      const auto* s = static_cast<const pulsetrack_msgs_msg_dds__Deformation_*>(samples[0]);
+      live_def[frame_of.at(s->frame)] = *s;
+      live_def[frame_of.at(s->frame)].rig_id = nullptr;
+      live_def[frame_of.at(s->frame)].header.frame_id = nullptr;
+    }
+    dds_return_loan(dr, samples, 1);
+    samples[0] = nullptr;
+  }
+  kill(d.pid, SIGTERM);
+  EXPECT_EQ(d.wait(secs), 0);
+  // Offline, the same ROI as the daemon's (the shipped config's default).
+  const std::string track = dir / "track.csv";
+  auto off =
+      test::run(test::cli() + " track --input " + rec +
+                " --roi-left 483,339,400,340 --roi-right 476,344,400,340 --out " + track + " -q");
+  ASSERT_EQ(off.exit_code, 0) << off.output;
+  auto rows = record::readTrackCsv(track);
+  ASSERT_TRUE(rows) << rows.error().message;
+  auto def = record::readDeformationCsv(dir / "track-deformation.csv");
+  ASSERT_TRUE(def) << def.error().message;
+  std::map<long, std::vector<record::TrackRow>> offline_features;
+  for (const auto& r : *rows) offline_features[r.frame].push_back(r);
+  std::cout << "live: " << live_features.size() << " features samples, " << live_def.size()
+            << " deformation; offline: " << offline_features.size() << " frames, " << def->size()
+            << " deformation rows, of " << last_frame << " pairs\n";
+  // Every pair through both, none lost or dropped.
+  EXPECT_EQ(live_features.size(), last_frame);
+  EXPECT_EQ(offline_features.size(), last_frame);
+  EXPECT_EQ(live_def.size(), def->size());
+  int compared = 0;
+  for (const auto& [frame, live] : live_features) {
+    const auto it = offline_features.find(frame);
+    ASSERT_NE(it, offline_features.end()) << "frame " << frame;
+    ASSERT_EQ(live.size(), it->second.size()) << "frame " << frame;
+    for (size_t i = 0; i < live.size(); ++i) {
+      const auto& lf = live[i];
+      const auto& of = it->second[i];
+      ASSERT_EQ(lf.id, of.id) << "frame " << frame;
+      // The status and the gate, as the track file names them.
+      EXPECT_EQ(lf.status == 0, of.ok())
+          << "frame " << frame << " id " << of.id << " " << of.status;
+      // The CSV prints positions to 1e-5 mm.
+      EXPECT_NEAR(lf.position.x * 1e3, of.x, 1e-5) << "frame " << frame << " id " << of.id;
+      EXPECT_NEAR(lf.position.y * 1e3, of.y, 1e-5) << "frame " << frame << " id " << of.id;
+      EXPECT_NEAR(lf.position.z * 1e3, of.z, 1e-5) << "frame " << frame << " id " << of.id;
+      ++compared;
+    }
+  }
+  int exact = 0;
+  for (const record::DeformationRow& r : *def) {
+    const auto it = live_def.find(r.frame);
+    ASSERT_NE(it, live_def.end()) << "frame " << r.frame;
+    const auto& l = it->second;
+    // Bit for bit: the daemon sends mm * 1e-3, the file holds the mm to 17 digits.
+    EXPECT_EQ(l.displacement.x, r.dx * 1e-3) << "frame " << r.frame;
+    EXPECT_EQ(l.displacement.y, r.dy * 1e-3) << "frame " << r.frame;
+    EXPECT_EQ(l.displacement.z, r.dz * 1e-3) << "frame " << r.frame;
+    EXPECT_EQ(l.velocity.x, r.vx * 1e-3) << "frame " << r.frame;
+    EXPECT_EQ(l.velocity.y, r.vy * 1e-3) << "frame " << r.frame;
+    EXPECT_EQ(l.velocity.z, r.vz * 1e-3) << "frame " << r.frame;
+    EXPECT_EQ(l.velocity_delay, r.velocity_delay) << "frame " << r.frame;
+    EXPECT_EQ(l.displacement_sigma, r.displacement_sigma * 1e-3) << "frame " << r.frame;
+    EXPECT_EQ(l.features_ok, static_cast<uint32_t>(r.ok)) << "frame " << r.frame;
+    EXPECT_EQ(l.detections, static_cast<uint32_t>(r.detections)) << "frame " << r.frame;
+    EXPECT_EQ(l.continuous, r.continuous) << "frame " << r.frame;
+    exact += l.displacement.x == r.dx * 1e-3 && l.velocity.z == r.vz * 1e-3 ? 1 : 0;
+  }
+  std::cout << compared << " feature rows equal, " << exact << " of " << def->size()
+            << " deformation samples identical\n";
+  EXPECT_GT(compared, 1000);
+}
+
+}  // namespace
+}  // namespace pulsetrack

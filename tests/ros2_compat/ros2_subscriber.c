@@ -1,0 +1,432 @@
+// ros2_subscriber: a DDS subscriber that receives pulsetrackd's topics the way a ROS 2 node
+// (rclcpp/rclpy over rmw_cyclonedds_cpp) does, and shares nothing with the daemon: its types come
+// from the ROS 2 .msg files (msg2idl.py -> ros2_types.idl -> idlc -t), not from msgs/idl, and it
+// uses Cyclone's C API directly, not pulsetrack's dds/ layer.
+//
+// What makes it a ROS 2 subscriber on the wire (rmw_cyclonedds_cpp, Humble):
+// - topic names "rt/" + the ROS name: rt/[<ns>/]pulsetrack/{features,deformation,health};
+// - type names <pkg>::msg::dds_::<Name>_, keyless (no @key), final, members in .msg order;
+// - XCDR1 only (rmw_cyclonedds's sertype allows only DDS_DATA_REPRESENTATION_FLAG_XCDR1);
+// - no type information (idlc -t; rmw_cyclonedds registers its sertype without it), so Cyclone
+//   matches the daemon's writers by topic and type name, as it does for a ROS 2 node;
+// - the QoS rmw_cyclonedds derives from rclcpp's profiles (create_readwrite_qos in rmw_node.cpp).
+//
+// usage: ros2_subscriber --domain N [--namespace NS] [--features N] [--deformation N]
+//                        [--health N] [--timeout S]
+// --features/--deformation/--health: samples to wait for (default 1 each, 0: don't wait).
+// Prints one line per sample to stdout (flushed), space-separated key=value; free-text strings
+// are always "quoted" (C escapes: \" \\ \n \t \xHH), rig and frame_id only when they need it;
+// doubles %.17g (features' x0 y0 z0 %.9g, nan without features; health fps %.9g), bools 0/1:
+//   features frame sec nanosec rig n ok(=status 0) first_id(-1: none) x0 y0 z0 status0 reason0
+//            frame_id
+//   deformation frame sec nanosec rig dx dy dz vx vy vz ok total cx cy cz velocity_delay
+//            displacement_sigma velocity_sigma detections continuous frame_id
+//   health sec nanosec rig state state_text last_error source source_state trigger_state
+//            recorder_state tracking_state clock_state clock_synchronized fps frames drops
+//            deadline_misses unpaired missing_triggers stages="name:p50/p99/max,..." frame_id
+// then "summary features=N deformation=N health=N". Exit 0: every requested count reached;
+// 1: timeout (or interrupted) first, with what matched on stderr; 2: bad usage or a DDS error
+// (named on stderr).
+#define _POSIX_C_SOURCE 200809L
+
+#include <dds/dds.h>
+#include <errno.h>
+#include <inttypes.h>
+#include <math.h>
+#include <signal.h>
+#include <stdbool.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+
+#include "ros2_types.h"
+
+enum { kFeatures, kDeformation, kHealth, kTopics };
+
+static const char* const kLeaf[kTopics] = {"features", "deformation", "health"};
+
+static volatile sig_atomic_t g_stop = 0;
+
+static void onSignal(int sig) {
+  (void)sig;
+  g_stop = 1;
+}
+
+static void usage(FILE* out) {
+  fprintf(out,
+          "usage: ros2_subscriber --domain N [--namespace NS] [--features N] [--deformation N]\n"
+          "                       [--health N] [--timeout S]\n"
+          "Subscribes to rt/[NS/]pulsetrack/{features,deformation,health} as a ROS 2 node over\n"
+          "rmw_cyclonedds_cpp would (types from the .msg files, ROS 2 QoS, XCDR1, keyless) and\n"
+          "prints one line per sample. --features/--deformation/--health: samples to wait for\n"
+          "(default 1 each; 0: don't wait for that topic). --timeout: seconds (default 30).\n"
+          "Exit 0 when every count is reached, 1 on timeout, 2 on usage or DDS errors.\n"
+          "DDS configuration: CYCLONEDDS_URI from the environment.\n");
+}
+
+static bool parseU32(const char* s, uint32_t max, uint32_t* out) {
+  if (s == NULL || *s == '\0' || *s == '-' || *s == '+') return false;
+  char* end = NULL;
+  errno = 0;
+  const unsigned long v = strtoul(s, &end, 10);
+  if (errno != 0 || *end != '\0' || v > max) return false;
+  *out = (uint32_t)v;
+  return true;
+}
+
+static bool parseSeconds(const char* s, double* out) {
+  if (s == NULL || *s == '\0') return false;
+  char* end = NULL;
+  errno = 0;
+  const double v = strtod(s, &end);
+  if (errno != 0 || *end != '\0' || !(v > 0.0) || v > 1e6) return false;
+  *out = v;
+  return true;
+}
+
+// ROS 2 namespace rules, as pulsetrackd checks them: segments of letters, digits and '_'
+// separated by '/', none starting with a digit; one leading '/' allowed (absolute form).
+static bool validNamespace(const char* ns) {
+  bool segment_start = true;
+  for (const char* p = ns; *p; ++p) {
+    const char c = *p;
+    if (c == '/') {
+      if (segment_start) return false;
+      segment_start = true;
+      continue;
+    }
+    const bool alpha = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || c == '_';
+    const bool digit = c >= '0' && c <= '9';
+    if (!alpha && !digit) return false;
+    if (segment_start && digit) return false;
+    segment_start = false;
+  }
+  return !segment_start;
+}
+
+static int64_t monotonicNs(void) {
+  struct timespec ts;
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+// A string value: "..." with C escapes, so that a line stays one line and splits on spaces.
+static void putQuoted(const char* s) {
+  putchar('"');
+  for (const unsigned char* p = (const unsigned char*)(s ? s : ""); *p; ++p) {
+    switch (*p) {
+      case '"':
+        fputs("\\\"", stdout);
+        break;
+      case '\\':
+        fputs("\\\\", stdout);
+        break;
+      case '\n':
+        fputs("\\n", stdout);
+        break;
+      case '\r':
+        fputs("\\r", stdout);
+        break;
+      case '\t':
+        fputs("\\t", stdout);
+        break;
+      default:
+        if (*p < 0x20 || *p == 0x7f)
+          printf("\\x%02x", *p);
+        else
+          putchar(*p);
+    }
+  }
+  putchar('"');
+}
+
+// A name-like string value (rig id, frame id): bare if it needs no quoting, else quoted.
+static void putToken(const char* s) {
+  const char* v = s ? s : "";
+  bool bare = *v != '\0';
+  for (const unsigned char* p = (const unsigned char*)v; *p && bare; ++p)
+    bare = *p > 0x20 && *p < 0x7f && *p != '"' && *p != '\\' && *p != '=';
+  if (bare)
+    fputs(v, stdout);
+  else
+    putQuoted(v);
+}
+
+static void printStamp(const std_msgs_msg_dds__Header_* h) {
+  printf(" sec=%" PRId32 " nanosec=%" PRIu32, h->stamp.sec, h->stamp.nanosec);
+}
+
+static void printFeatures(const pulsetrack_msgs_msg_dds__Features_* m) {
+  const dds_sequence_pulsetrack_msgs_msg_dds__Feature_* fs = &m->features;
+  uint32_t ok = 0;
+  for (uint32_t i = 0; i < fs->_length; ++i)
+    if (fs->_buffer[i].status == 0) ++ok;  // Feature.msg STATUS_OK=0
+  const pulsetrack_msgs_msg_dds__Feature_* f0 = fs->_length > 0 ? &fs->_buffer[0] : NULL;
+  printf("features frame=%" PRIu64, m->frame);
+  printStamp(&m->header);
+  fputs(" rig=", stdout);
+  putToken(m->rig_id);
+  printf(" n=%" PRIu32 " ok=%" PRIu32 " first_id=%" PRId32, fs->_length, ok, f0 ? f0->id : -1);
+  printf(" x0=%.9g y0=%.9g z0=%.9g", f0 ? f0->position.x : NAN, f0 ? f0->position.y : NAN,
+         f0 ? f0->position.z : NAN);
+  printf(" status0=%d reason0=%d", f0 ? f0->status : -1, f0 ? f0->reason : -1);
+  fputs(" frame_id=", stdout);
+  putToken(m->header.frame_id);
+  putchar('\n');
+}
+
+static void printDeformation(const pulsetrack_msgs_msg_dds__Deformation_* m) {
+  printf("deformation frame=%" PRIu64, m->frame);
+  printStamp(&m->header);
+  fputs(" rig=", stdout);
+  putToken(m->rig_id);
+  printf(" dx=%.17g dy=%.17g dz=%.17g", m->displacement.x, m->displacement.y, m->displacement.z);
+  printf(" vx=%.17g vy=%.17g vz=%.17g", m->velocity.x, m->velocity.y, m->velocity.z);
+  printf(" ok=%" PRIu32 " total=%" PRIu32, m->features_ok, m->features_total);
+  printf(" cx=%.17g cy=%.17g cz=%.17g", m->centroid.x, m->centroid.y, m->centroid.z);
+  printf(" velocity_delay=%.17g displacement_sigma=%.17g velocity_sigma=%.17g", m->velocity_delay,
+         m->displacement_sigma, m->velocity_sigma);
+  printf(" detections=%" PRIu32 " continuous=%d", m->detections, m->continuous ? 1 : 0);
+  fputs(" frame_id=", stdout);
+  putToken(m->header.frame_id);
+  putchar('\n');
+}
+
+static void printHealth(const pulsetrack_msgs_msg_dds__Health_* m) {
+  fputs("health", stdout);
+  printStamp(&m->header);
+  fputs(" rig=", stdout);
+  putToken(m->rig_id);
+  printf(" state=%u state_text=", (unsigned)m->state);
+  putQuoted(m->state_text);
+  fputs(" last_error=", stdout);
+  putQuoted(m->last_error);
+  const struct {
+    const char* name;
+    const char* value;
+  } strings[] = {
+      {"source", m->source},
+      {"source_state", m->source_state},
+      {"trigger_state", m->trigger_state},
+      {"recorder_state", m->recorder_state},
+      {"tracking_state", m->tracking_state},
+      {"clock_state", m->clock_state},
+  };
+  for (size_t i = 0; i < sizeof strings / sizeof strings[0]; ++i) {
+    printf(" %s=", strings[i].name);
+    putQuoted(strings[i].value);
+  }
+  printf(" clock_synchronized=%d fps=%.9g", m->clock_synchronized ? 1 : 0, (double)m->fps);
+  printf(" frames=%" PRIu64 " drops=%" PRIu64 " deadline_misses=%" PRIu64 " unpaired=%" PRIu64
+         " missing_triggers=%" PRIu64,
+         m->frames, m->drops, m->deadline_misses, m->unpaired, m->missing_triggers);
+  // stages="capture:p50/p99/max,track:...", microseconds
+  fputs(" stages=\"", stdout);
+  for (uint32_t i = 0; i < m->stages._length; ++i) {
+    const pulsetrack_msgs_msg_dds__StageLatency_* s = &m->stages._buffer[i];
+    if (i > 0) putchar(',');
+    for (const unsigned char* p = (const unsigned char*)(s->stage ? s->stage : ""); *p; ++p)
+      putchar(*p > 0x20 && *p < 0x7f && *p != '"' && *p != '\\' && *p != ',' ? *p : '_');
+    printf(":%" PRIu32 "/%" PRIu32 "/%" PRIu32, s->p50_us, s->p99_us, s->max_us);
+  }
+  putchar('"');
+  fputs(" frame_id=", stdout);
+  putToken(m->header.frame_id);
+  putchar('\n');
+}
+
+// The reader QoS rmw_cyclonedds_cpp (Humble, rmw_node.cpp create_readwrite_qos) makes of an
+// rmw_qos_profile_t with the given history depth, reliability and durability; deadline and
+// lifespan unset, liveliness automatic with an infinite lease (the profiles' defaults), local
+// publications not ignored (rclcpp's default). Plus the data representation: rmw_cyclonedds's
+// sertype allows XCDR1 only, so its readers offer exactly XCDR1.
+static dds_qos_t* ros2Qos(int32_t depth, bool reliable, bool transient_local) {
+  dds_qos_t* qos = dds_create_qos();
+  dds_qset_writer_data_lifecycle(qos, false);  // rmw sets it on readers and writers alike
+  dds_qset_history(qos, DDS_HISTORY_KEEP_LAST, depth);
+  if (reliable)
+    dds_qset_reliability(qos, DDS_RELIABILITY_RELIABLE, DDS_INFINITY);
+  else
+    dds_qset_reliability(qos, DDS_RELIABILITY_BEST_EFFORT, 0);
+  if (transient_local) {
+    dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
+    dds_qset_durability_service(qos, 0, DDS_HISTORY_KEEP_LAST, depth, DDS_LENGTH_UNLIMITED,
+                                DDS_LENGTH_UNLIMITED, DDS_LENGTH_UNLIMITED);
+  } else {
+    dds_qset_durability(qos, DDS_DURABILITY_VOLATILE);
+  }
+  dds_qset_liveliness(qos, DDS_LIVELINESS_AUTOMATIC, DDS_INFINITY);
+  dds_qset_data_representation(qos, 1,
+                               (dds_data_representation_id_t[]){DDS_DATA_REPRESENTATION_XCDR1});
+  return qos;
+}
+
+static dds_entity_t g_participant = 0;
+
+static int fail(const char* what, const char* topic, dds_return_t rc) {
+  fprintf(stderr, "ros2_subscriber: %s%s%s: %s\n", what, topic ? " " : "", topic ? topic : "",
+          dds_strretcode(rc));
+  if (g_participant > 0) dds_delete(g_participant);
+  return 2;
+}
+
+int main(int argc, char** argv) {
+  uint32_t domain = UINT32_MAX;
+  const char* ns = "";
+  uint32_t want[kTopics] = {1, 1, 1};
+  double timeout_s = 30.0;
+  for (int i = 1; i < argc; ++i) {
+    const char* a = argv[i];
+    if (strcmp(a, "--help") == 0 || strcmp(a, "-h") == 0) {
+      usage(stdout);
+      return 0;
+    }
+    const char* v = i + 1 < argc ? argv[i + 1] : NULL;
+    bool ok = v != NULL;
+    if (strcmp(a, "--domain") == 0)
+      ok = ok && parseU32(v, 232, &domain);
+    else if (strcmp(a, "--namespace") == 0)
+      ns = v ? v : "";
+    else if (strcmp(a, "--features") == 0)
+      ok = ok && parseU32(v, 1000000000u, &want[kFeatures]);
+    else if (strcmp(a, "--deformation") == 0)
+      ok = ok && parseU32(v, 1000000000u, &want[kDeformation]);
+    else if (strcmp(a, "--health") == 0)
+      ok = ok && parseU32(v, 1000000000u, &want[kHealth]);
+    else if (strcmp(a, "--timeout") == 0)
+      ok = ok && parseSeconds(v, &timeout_s);
+    else {
+      fprintf(stderr, "ros2_subscriber: unknown argument '%s'\n", a);
+      usage(stderr);
+      return 2;
+    }
+    if (!ok) {
+      fprintf(stderr, "ros2_subscriber: %s needs %s, not '%s'\n", a,
+              strcmp(a, "--domain") == 0      ? "a domain id 0-232"
+              : strcmp(a, "--timeout") == 0   ? "a number of seconds > 0"
+              : strcmp(a, "--namespace") == 0 ? "a namespace"
+                                              : "a count >= 0",
+              v ? v : "(nothing)");
+      return 2;
+    }
+    ++i;
+  }
+  if (domain == UINT32_MAX) {
+    fprintf(stderr, "ros2_subscriber: --domain is required\n");
+    usage(stderr);
+    return 2;
+  }
+  if (ns[0] == '/') ++ns;
+  if (ns[0] != '\0' && !validNamespace(ns)) {
+    fprintf(stderr,
+            "ros2_subscriber: namespace '%s' is not a ROS 2 namespace (segments of letters, "
+            "digits and '_' separated by '/', none starting with a digit)\n",
+            ns);
+    return 2;
+  }
+
+  char topic[kTopics][256];
+  for (int t = 0; t < kTopics; ++t) {
+    const int n =
+        snprintf(topic[t], sizeof topic[t], "rt/%s%spulsetrack/%s", ns, ns[0] ? "/" : "", kLeaf[t]);
+    if (n < 0 || (size_t)n >= sizeof topic[t]) {
+      fprintf(stderr, "ros2_subscriber: namespace '%s' is too long\n", ns);
+      return 2;
+    }
+  }
+
+  struct sigaction sa;
+  memset(&sa, 0, sizeof sa);
+  sa.sa_handler = onSignal;
+  sigemptyset(&sa.sa_mask);
+  sigaction(SIGINT, &sa, NULL);
+  sigaction(SIGTERM, &sa, NULL);
+
+  // NULL QoS and config: CYCLONEDDS_URI from the environment applies, as for a ROS 2 node.
+  const dds_entity_t pp = dds_create_participant(domain, NULL, NULL);
+  if (pp < 0) return fail("cannot join the domain (check CYCLONEDDS_URI)", NULL, pp);
+  g_participant = pp;
+
+  const dds_topic_descriptor_t* desc[kTopics] = {&pulsetrack_msgs_msg_dds__Features__desc,
+                                                 &pulsetrack_msgs_msg_dds__Deformation__desc,
+                                                 &pulsetrack_msgs_msg_dds__Health__desc};
+  // features, deformation: rclcpp::SensorDataQoS() = rmw_qos_profile_sensor_data (best effort,
+  // keep last 5, volatile). health: rmw_qos_profile_default made keep last 1 and transient
+  // local, i.e. rclcpp::QoS(1).reliable().transient_local(): what a ROS 2 node that wants the
+  // latched health value (the daemon's last one, also when it joins late) subscribes with.
+  dds_entity_t reader[kTopics];
+  const dds_entity_t ws = dds_create_waitset(pp);
+  if (ws < 0) return fail("cannot create a waitset", NULL, ws);
+  for (int t = 0; t < kTopics; ++t) {
+    const dds_entity_t tp = dds_create_topic(pp, desc[t], topic[t], NULL, NULL);
+    if (tp < 0) return fail("cannot create the topic", topic[t], tp);
+    dds_qos_t* qos = t == kHealth ? ros2Qos(1, true, true) : ros2Qos(5, false, false);
+    reader[t] = dds_create_reader(pp, tp, qos, NULL);
+    dds_delete_qos(qos);
+    if (reader[t] < 0) return fail("cannot create a reader on", topic[t], reader[t]);
+    const dds_entity_t cond = dds_create_readcondition(reader[t], DDS_ANY_STATE);
+    if (cond < 0) return fail("cannot create a read condition on", topic[t], cond);
+    const dds_return_t rc = dds_waitset_attach(ws, cond, t);
+    if (rc != DDS_RETCODE_OK) return fail("cannot wait on", topic[t], rc);
+  }
+
+  uint32_t got[kTopics] = {0, 0, 0};
+  const int64_t deadline = monotonicNs() + (int64_t)(timeout_s * 1e9);
+  bool done = false;
+  while (!g_stop) {
+    for (int t = 0; t < kTopics; ++t) {
+      for (;;) {
+        void* buf[16] = {NULL};  // NULL: Cyclone lends the samples
+        dds_sample_info_t info[16];
+        const dds_return_t n = dds_take(reader[t], buf, info, 16, 16);
+        if (n < 0) return fail("cannot take from", topic[t], n);
+        for (dds_return_t i = 0; i < n; ++i) {
+          if (!info[i].valid_data) continue;
+          if (t == kFeatures)
+            printFeatures(buf[i]);
+          else if (t == kDeformation)
+            printDeformation(buf[i]);
+          else
+            printHealth(buf[i]);
+          fflush(stdout);
+          ++got[t];
+        }
+        if (n > 0) dds_return_loan(reader[t], buf, n);
+        if (n < 16) break;
+      }
+    }
+    done = got[kFeatures] >= want[kFeatures] && got[kDeformation] >= want[kDeformation] &&
+           got[kHealth] >= want[kHealth];
+    if (done) break;
+    const int64_t left = deadline - monotonicNs();
+    if (left <= 0) break;
+    const dds_return_t rc =
+        dds_waitset_wait(ws, NULL, 0, left < DDS_MSECS(200) ? left : DDS_MSECS(200));
+    if (rc < 0) return fail("cannot wait", NULL, rc);
+  }
+
+  printf("summary features=%" PRIu32 " deformation=%" PRIu32 " health=%" PRIu32 "\n",
+         got[kFeatures], got[kDeformation], got[kHealth]);
+  fflush(stdout);
+  if (!done) {
+    fprintf(stderr, "ros2_subscriber: %s after %.3g s:", g_stop ? "interrupted" : "timeout",
+            timeout_s);
+    for (int t = 0; t < kTopics; ++t) {
+      dds_subscription_matched_status_t m;
+      dds_requested_incompatible_qos_status_t q;
+      const bool have_m = dds_get_subscription_matched_status(reader[t], &m) == DDS_RETCODE_OK;
+      const bool have_q =
+          dds_get_requested_incompatible_qos_status(reader[t], &q) == DDS_RETCODE_OK;
+      fprintf(stderr, " %s %" PRIu32 "/%" PRIu32 " (matched writers %" PRIu32, topic[t], got[t],
+              want[t], have_m ? m.current_count : 0);
+      if (have_q && q.total_count > 0)
+        fprintf(stderr, ", %" PRIu32 " with incompatible QoS, last policy id %" PRIu32,
+                q.total_count, (uint32_t)q.last_policy_id);
+      fputs(t + 1 < kTopics ? ");" : ")\n", stderr);
+    }
+  }
+  dds_delete(pp);
+  return done ? 0 : 1;
+}

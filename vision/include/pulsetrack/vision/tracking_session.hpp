@@ -1,0 +1,145 @@
+#pragma once
+// TrackingSession: the StereoTracker and the policy around it, one pair at a time. Knows no DDS,
+// threads, clocks or files: pulsetrackd's track stage, `pulsetrack track`, `pulsetrack analyze`
+// and the tests all drive it, so the offline signal is the live one, bit for bit.
+//
+// Policy:
+// - detect in the first pair after construction, start() or setRoi(); a detection that finds
+//   nothing says why (reason()) and is tried again at most once per retry_interval_s of pair
+//   time (detection allocates; between attempts a pair costs nothing and allocates nothing);
+//   an ROI that cannot work (outside the image, smaller than two templates) is refused by
+//   checkRoi() and never detected in;
+// - track every pair; re-detect (redetect(), new ids, continuity kept) when the tracker asks
+//   (too few features ok) or on requestRedetect(); stop() pauses until start();
+// - afterPublish(): the tracker's stereo refresh, once the pair's result is out.
+//
+// The deformation: the mean displacement of the ok features from their reference positions
+// (point0, which the stereo refresh corrects with the positions). When the set of ok features
+// changes (an instrument hides some, they come back, a re-detection replaces them) the signal
+// continues: the step is the mean displacement increment of the features ok in both pairs, so
+// nothing jumps because the mean is taken over other points. Velocity: the slope of a causal
+// least-squares line through the displacement over the last velocity_window_s, published with
+// its group delay (the window's mean age). Noise: the features' pair-to-pair scatter about the
+// mean increment, as a standard error of the mean (smoothed over ~20 pairs).
+
+#include <array>
+#include <cstdint>
+#include <opencv2/core.hpp>
+#include <span>
+#include <string_view>
+#include <vector>
+
+#include "pulsetrack/vision/error.hpp"
+#include "pulsetrack/vision/stereo_rig.hpp"
+#include "pulsetrack/vision/stereo_tracker.hpp"
+
+namespace pulsetrack::vision {
+
+struct SessionConfig {
+  TrackerConfig tracker;
+  Roi roi;
+  double depth_tolerance_mm = 20.0;
+  double retry_interval_s = 1.0;    // between detection attempts that found nothing
+  double velocity_window_s = 0.25;  // the velocity's least-squares window
+};
+
+struct Deformation {
+  bool valid = false;               // at least one feature ok in this pair
+  cv::Vec3d centroid{0, 0, 0};      // mm, mean position of the ok features
+  cv::Vec3d displacement{0, 0, 0};  // mm
+  cv::Vec3d velocity{0, 0, 0};      // mm/s, of velocity_delay_s before the pair
+  double velocity_delay_s = 0.0;
+  double displacement_sigma_mm = 0.0;  // 1 sigma, RMS over the axes
+  double velocity_sigma_mm_s = 0.0;
+  int ok = 0;
+  int total = 0;
+  uint32_t detections = 0;  // feature sets so far in this signal (1 + re-detections)
+  bool continuous = true;   // false: the signal (re)started here
+};
+
+enum class SessionState : uint8_t {
+  kTracking,    // features tracked in this pair
+  kNoFeatures,  // no detection has succeeded (reason() says why); retried
+  kStopped,     // stop(): pairs are not tracked
+};
+const char* toString(SessionState s) noexcept;
+
+struct PairResult {
+  uint64_t frame = 0;
+  int64_t t_ns = 0;
+  SessionState state = SessionState::kNoFeatures;
+  bool detected = false;  // the features were (re)detected in this pair: new ids
+  Deformation deformation;
+  std::span<const Feature> features;  // valid until the next process()
+};
+
+class TrackingSession {
+ public:
+  TrackingSession(const StereoRig& rig, const SessionConfig& config);
+
+  // Whether an ROI pair can be tracked in the rig's images: inside them, at least two templates
+  // on each side, a positive depth tolerance. The error names the ROI and what is wrong.
+  static Result<void> checkRoi(const StereoRig& rig, const Roi& roi, double depth_tolerance_mm);
+
+  // Between pairs, on the session's thread. setRoi() and start() detect afresh in the next pair
+  // (a new signal); an ROI that fails checkRoi() is kept out (the reason says why) until a good
+  // one comes. requestRedetect() re-detects in the next pair and keeps the signal continuous.
+  void setRoi(const Roi& roi, double depth_tolerance_mm);
+  void start();
+  void stop();
+  void requestRedetect() { redetect_requested_ = true; }
+
+  // One pair: detect or track, re-detect when due, and the deformation. Allocates only when it
+  // detects (at most once per retry interval while detection finds nothing).
+  const PairResult& process(const cv::Mat& left, const cv::Mat& right, uint64_t frame,
+                            int64_t t_ns);
+  // After the pair's result has been handed on: the stereo refresh (no allocation).
+  void afterPublish(const cv::Mat& left, const cv::Mat& right) noexcept;
+
+  // Why nothing is tracked ("" while tracking): valid until the next call; no allocation.
+  [[nodiscard]] std::string_view reason() const noexcept { return {reason_.data(), reason_len_}; }
+  // Bumped whenever reason() changes, so that a reader can copy it only on a change.
+  [[nodiscard]] uint64_t reasonSerial() const noexcept { return reason_serial_; }
+  [[nodiscard]] const PairResult& last() const noexcept { return result_; }
+  [[nodiscard]] const StereoTracker& tracker() const noexcept { return tracker_; }
+  [[nodiscard]] int redetections() const noexcept { return redetections_; }
+  [[nodiscard]] int detectionAttempts() const noexcept { return attempts_; }
+
+ private:
+  void setReason(std::string_view text) noexcept;
+  void resetSignal() noexcept;
+  void markReference() noexcept;  // every feature's displacement so far is the reference
+  void deformation(int64_t t_ns) noexcept;
+  bool detect(const cv::Mat& left, const cv::Mat& right, bool redetection);
+
+  StereoTracker tracker_;
+  StereoRig rig_;
+  SessionConfig config_;
+  PairResult result_;
+  bool initialized_ = false, stopped_ = false, roi_ok_ = true, redetect_requested_ = false;
+  bool have_attempt_ = false;
+  int64_t last_attempt_ns_ = 0;
+  int attempts_ = 0, redetections_ = 0;
+  uint32_t detections_ = 0;
+  std::array<char, 512> reason_{};
+  size_t reason_len_ = 0;
+  uint64_t reason_serial_ = 0;
+  // The continuity of the displacement: per feature (by index), ok and its displacement at the
+  // last pair that had a valid deformation.
+  std::vector<uint8_t> prev_ok_;
+  std::vector<cv::Vec3d> prev_d_;
+  bool have_output_ = false, restart_ = true;
+  cv::Vec3d offset_{0, 0, 0}, output_{0, 0, 0};
+  double noise_var_ = 0.0;  // smoothed variance of one feature's displacement increment
+  bool have_noise_ = false;
+  // The velocity's window: (t in s from the signal's start, displacement), a ring.
+  struct Sample {
+    double t;
+    cv::Vec3d d;
+  };
+  std::vector<Sample> ring_;
+  size_t ring_head_ = 0, ring_size_ = 0;
+  int64_t t0_ns_ = 0;
+};
+
+}  // namespace pulsetrack::vision

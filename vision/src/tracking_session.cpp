@@ -1,0 +1,307 @@
+#include "pulsetrack/vision/tracking_session.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <map>
+
+#include "pulsetrack/vision/affine_refiner.hpp"
+
+namespace pulsetrack::vision {
+
+namespace {
+
+constexpr size_t kRing = 256;  // velocity window samples at most (0.25 s at 1 kHz)
+
+std::string roiText(const cv::Rect& r) {
+  return fmt::format("{},{} {}x{}", r.x, r.y, r.width, r.height);
+}
+
+}  // namespace
+
+const char* toString(SessionState s) noexcept {
+  switch (s) {
+    case SessionState::kTracking:
+      return "tracking";
+    case SessionState::kNoFeatures:
+      return "no features";
+    case SessionState::kStopped:
+      return "stopped";
+  }
+  return "unknown";
+}
+
+TrackingSession::TrackingSession(const StereoRig& rig, const SessionConfig& config)
+    : tracker_(rig, config.tracker), rig_(rig), config_(config) {
+  const auto n = static_cast<size_t>(std::max(1, config_.tracker.max_features));
+  prev_ok_.assign(n, 0);
+  prev_d_.assign(n, cv::Vec3d(0, 0, 0));
+  ring_.assign(kRing, Sample{0.0, {0, 0, 0}});
+  setRoi(config_.roi, config_.depth_tolerance_mm);
+}
+
+Result<void> TrackingSession::checkRoi(const StereoRig& rig, const Roi& roi,
+                                       double depth_tolerance_mm) {
+  const cv::Size size = rig.left.imageSize();
+  const cv::Rect frame(0, 0, size.width, size.height);
+  constexpr int kMin = 2 * kAffineSide;
+  for (const auto& [name, r] : {std::pair{"left", roi.left}, std::pair{"right", roi.right}}) {
+    if ((r & frame) != r || r.width <= 0 || r.height <= 0) {
+      return fail(fmt::format("{} ROI {}: not inside the {}x{} image", name, roiText(r), size.width,
+                              size.height));
+    }
+    if (r.width < kMin || r.height < kMin) {
+      return fail(
+          fmt::format("{} ROI {}: too small for {}x{} templates (at least {} px on each side)",
+                      name, roiText(r), kAffineSide, kAffineSide, kMin));
+    }
+  }
+  if (!(depth_tolerance_mm > 0.0 && depth_tolerance_mm <= 500.0))
+    return fail(fmt::format("depth tolerance {} mm: must be in (0, 500]", depth_tolerance_mm));
+  return {};
+}
+
+void TrackingSession::setReason(std::string_view text) noexcept {
+  const size_t n = std::min(text.size(), reason_.size());
+  if (n == reason_len_ && std::memcmp(reason_.data(), text.data(), n) == 0) return;
+  std::memcpy(reason_.data(), text.data(), n);
+  reason_len_ = n;
+  ++reason_serial_;
+}
+
+void TrackingSession::setRoi(const Roi& roi, double depth_tolerance_mm) {
+  config_.roi = roi;
+  config_.depth_tolerance_mm = depth_tolerance_mm;
+  initialized_ = false;
+  have_attempt_ = false;
+  auto ok = checkRoi(rig_, roi, depth_tolerance_mm);
+  roi_ok_ = ok.has_value();
+  setReason(roi_ok_ ? "waiting for the first pair" : ok.error().message);
+}
+
+void TrackingSession::start() {
+  stopped_ = false;
+  initialized_ = false;
+  have_attempt_ = false;
+  if (roi_ok_) setReason("waiting for the first pair");
+}
+
+void TrackingSession::stop() {
+  stopped_ = true;
+  initialized_ = false;
+}
+
+void TrackingSession::resetSignal() noexcept {
+  have_output_ = false;
+  restart_ = true;
+  offset_ = output_ = cv::Vec3d(0, 0, 0);
+  ring_size_ = 0;
+  detections_ = 0;
+}
+
+void TrackingSession::markReference() noexcept {
+  const auto feats = tracker_.features();
+  const size_t n = std::min(feats.size(), prev_ok_.size());
+  std::fill(prev_ok_.begin(), prev_ok_.end(), 0);
+  for (size_t i = 0; i < n; ++i) {
+    prev_ok_[i] = feats[i].status == FeatureStatus::kOk ? 1 : 0;
+    prev_d_[i] = feats[i].point - feats[i].point0;
+  }
+  restart_ = true;  // the next deformation rebases on the features in common
+}
+
+bool TrackingSession::detect(const cv::Mat& left, const cv::Mat& right, bool redetection) {
+  ++attempts_;
+  auto ok = redetection ? tracker_.redetect(left, right)
+                        : tracker_.initialize(left, right, config_.roi, config_.depth_tolerance_mm);
+  if (ok && *ok > 0) {
+    setReason("");
+    return true;
+  }
+  if (!ok) {
+    setReason(ok.error().message);
+    return false;
+  }
+  // Nothing passed: say what the candidates met.
+  const auto& cands = tracker_.candidates();
+  std::map<std::string, int> by_gate;
+  for (const StereoCandidate& c : cands) ++by_gate[statusText(c.status, c.gate)];
+  std::string gates;
+  for (const auto& [g, n] : by_gate)
+    gates += fmt::format("{}{} {}", gates.empty() ? "" : ", ", n, g);
+  const std::string where =
+      fmt::format("ROI {} (right {})", roiText(config_.roi.left), roiText(config_.roi.right));
+  setReason(cands.empty()
+                ? fmt::format("{}: no corner found in the left ROI (no texture there, or too "
+                              "small); detection is tried again every {:g} s",
+                              where, config_.retry_interval_s)
+                : fmt::format("{}: none of {} corners passed the gates ({}); detection is tried "
+                              "again every {:g} s",
+                              where, cands.size(), gates, config_.retry_interval_s));
+  return false;
+}
+
+const PairResult& TrackingSession::process(const cv::Mat& left, const cv::Mat& right,
+                                           uint64_t frame, int64_t t_ns) {
+  result_.frame = frame;
+  result_.t_ns = t_ns;
+  result_.detected = false;
+  result_.deformation.valid = false;
+  result_.features = {};
+  if (stopped_) {
+    result_.state = SessionState::kStopped;
+    setReason("stopped (start resumes)");
+    return result_;
+  }
+  result_.state = SessionState::kNoFeatures;
+  if (!roi_ok_) return result_;  // the reason names the ROI
+  if (!initialized_) {
+    const auto interval = static_cast<int64_t>(config_.retry_interval_s * 1e9);
+    if (have_attempt_ && t_ns - last_attempt_ns_ < interval && t_ns >= last_attempt_ns_)
+      return result_;
+    have_attempt_ = true;
+    last_attempt_ns_ = t_ns;
+    redetect_requested_ = false;
+    if (!detect(left, right, false)) return result_;
+    initialized_ = true;
+    resetSignal();
+    t0_ns_ = t_ns;
+    detections_ = 1;
+    result_.detected = true;
+  } else {
+    tracker_.track(left, right);
+    deformation(t_ns);
+    if (redetect_requested_ || tracker_.needsRedetection()) {
+      redetect_requested_ = false;
+      // The new features' reference is where they are now: the signal goes on from the value
+      // just measured with the old ones.
+      if (detect(left, right, true)) {
+        ++redetections_;
+        ++detections_;
+        result_.detected = true;
+        markReference();
+      } else {
+        initialized_ = false;  // tried again (rate-limited) from the next pair
+        have_attempt_ = true;
+        last_attempt_ns_ = t_ns;
+      }
+    }
+    result_.state = SessionState::kTracking;
+    result_.features = tracker_.features();
+    result_.deformation.detections = detections_;
+    return result_;
+  }
+  // A fresh detection: the signal starts at zero here.
+  markReference();
+  deformation(t_ns);
+  result_.state = SessionState::kTracking;
+  result_.features = tracker_.features();
+  result_.deformation.detections = detections_;
+  return result_;
+}
+
+void TrackingSession::deformation(int64_t t_ns) noexcept {
+  Deformation& d = result_.deformation;
+  const auto feats = tracker_.features();
+  const size_t n = std::min(feats.size(), prev_ok_.size());
+  cv::Vec3d sum_p(0, 0, 0), sum_d(0, 0, 0), sum_inc(0, 0, 0);
+  double sum_inc_sq = 0.0;
+  int ok = 0, common = 0;
+  bool changed = false;
+  for (size_t i = 0; i < n; ++i) {
+    const Feature& f = feats[i];
+    const bool now = f.status == FeatureStatus::kOk;
+    if (now != (prev_ok_[i] != 0)) changed = true;
+    if (!now) continue;
+    const cv::Vec3d di = f.point - f.point0;
+    sum_p += f.point;
+    sum_d += di;
+    ++ok;
+    if (prev_ok_[i] != 0) {
+      const cv::Vec3d inc = di - prev_d_[i];
+      sum_inc += inc;
+      sum_inc_sq += inc.dot(inc);
+      ++common;
+    }
+  }
+  d.ok = ok;
+  d.total = static_cast<int>(feats.size());
+  d.valid = ok > 0;
+  if (!d.valid) return;  // the reference stays at the last pair that had one
+  const cv::Vec3d mean_d = sum_d / ok;
+  bool continuous = true;
+  if (!have_output_) {
+    offset_ = -mean_d;  // the signal starts at zero
+    continuous = false;
+  } else if (changed || restart_) {
+    if (common > 0) {
+      offset_ = output_ + sum_inc / common - mean_d;
+    } else {
+      offset_ = output_ - mean_d;  // nothing in common: the motion in between is unknown
+      continuous = false;
+    }
+  }
+  restart_ = false;
+  have_output_ = true;
+  output_ = mean_d + offset_;
+  // Noise: one feature's increment scatters about the mean increment by sqrt(2) sigma_f per
+  // axis (both pairs' noise); the mean of ok features has sigma_f / sqrt(ok).
+  if (common >= 3) {
+    const cv::Vec3d m = sum_inc / common;
+    const double var_inc = std::max(0.0, (sum_inc_sq - common * m.dot(m)) / (3.0 * (common - 1)));
+    noise_var_ = have_noise_ ? 0.95 * noise_var_ + 0.05 * var_inc : var_inc;
+    have_noise_ = true;
+  }
+  const double sigma_d = std::sqrt(noise_var_ / 2.0 / ok);
+  // Velocity: least-squares slope over the window, on the continuous signal.
+  if (!continuous) ring_size_ = 0;
+  const double t = static_cast<double>(t_ns - t0_ns_) * 1e-9;
+  ring_[ring_head_] = {t, output_};
+  ring_head_ = (ring_head_ + 1) % ring_.size();
+  ring_size_ = std::min(ring_size_ + 1, ring_.size());
+  double st = 0.0;
+  cv::Vec3d sd(0, 0, 0);
+  size_t m = 0;
+  for (size_t k = 0; k < ring_size_; ++k) {
+    const Sample& s = ring_[(ring_head_ + ring_.size() - 1 - k) % ring_.size()];
+    if (k >= 2 && t - s.t > config_.velocity_window_s + 1e-9) break;
+    st += s.t;
+    sd += s.d;
+    ++m;
+  }
+  d.velocity = cv::Vec3d(0, 0, 0);
+  d.velocity_delay_s = 0.0;
+  d.velocity_sigma_mm_s = 0.0;
+  if (m >= 2) {
+    const double tm = st / static_cast<double>(m);
+    const cv::Vec3d dm = sd / static_cast<double>(m);
+    double stt = 0.0;
+    cv::Vec3d std_(0, 0, 0);
+    for (size_t k = 0; k < m; ++k) {
+      const Sample& s = ring_[(ring_head_ + ring_.size() - 1 - k) % ring_.size()];
+      stt += (s.t - tm) * (s.t - tm);
+      std_ += (s.t - tm) * (s.d - dm);
+    }
+    if (stt > 0.0) {
+      d.velocity = std_ / stt;
+      d.velocity_delay_s = t - tm;
+      d.velocity_sigma_mm_s = sigma_d / std::sqrt(stt);
+    }
+  }
+  d.centroid = sum_p / ok;
+  d.displacement = output_;
+  d.displacement_sigma_mm = sigma_d;
+  d.continuous = continuous;
+  for (size_t i = 0; i < n; ++i) {
+    prev_ok_[i] = feats[i].status == FeatureStatus::kOk ? 1 : 0;
+    if (prev_ok_[i] != 0) prev_d_[i] = feats[i].point - feats[i].point0;
+  }
+}
+
+void TrackingSession::afterPublish(const cv::Mat& left, const cv::Mat& right) noexcept {
+  if (initialized_ && !stopped_) tracker_.refreshStereo(left, right);
+}
+
+}  // namespace pulsetrack::vision
