@@ -36,6 +36,12 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_EQ(d->roi.left, c->roi.left);
   EXPECT_EQ(d->publish.fifo_priority, c->publish.fifo_priority);
   EXPECT_EQ(d->health_period_ms, c->health_period_ms);
+  EXPECT_EQ(d->topics.features, "rt/pulsetrack/features");
+  EXPECT_EQ(d->retry_interval_s, c->retry_interval_s);
+  EXPECT_EQ(d->velocity_window_s, c->velocity_window_s);
+  auto ns = parseDaemonConfig("[dds]\nnamespace = \"/site/or1\"\n", kShipped);
+  ASSERT_TRUE(ns) << ns.error().message;
+  EXPECT_EQ(ns->topics.command, "rt/site/or1/pulsetrack/command");
 }
 
 void expectError(const std::string& text, const std::string& needle) {
@@ -66,6 +72,12 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError("[source]\nkind = \"v4l2\"\n",
               "source.rig (the rig's calibration) is required with kind = \"v4l2\"");
   expectError("[source]\nkind = \"libcamera\"\nrig = \"r.yaml\"\n", "source.left.libcamera_id and");
+  expectError("[dds]\nnamespace = \"or 1\"\n",
+              "pulsetrackd.toml: [dds] namespace: DDS namespace 'or 1': ' ' is not allowed");
+  expectError("[dds]\nnamespace = \"1or\"\n", "a segment starts with a digit");
+  expectError("[source]\nlossless = true\n", "source.lossless: only a replay");
+  expectError("[tracker]\nretry_interval_s = 0\n", "tracker.retry_interval_s");
+  expectError("[tracker]\nvelocity_window_s = 20\n", "tracker.velocity_window_s");
   expectError("[source.left]\npixel_format = \"RGB\"\n",
               "source.left.pixel_format: expected one of");
   expectError("[source.right]\nbuffers = 1\n", "pulsetrackd.toml:2: source.right.buffers");

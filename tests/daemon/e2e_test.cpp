@@ -204,6 +204,16 @@ TEST(Daemon, CheckConfigNamesFileLineOrSaysOk) {
                 "/config/pulsetrackd.toml");
   EXPECT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("ok (source sim cortex-60s"), std::string::npos) << r.output;
+  // An ROI the rig's images cannot hold: named before anything starts.
+  const auto roi = dir.path() / "roi.toml";
+  std::ofstream(roi) << "[source]\nscene = \"" << kScene
+                     << "\"\n[tracker]\nroi_left = [1300, 1000, 200, 200]\n";
+  r = test::run(std::string(PULSETRACKD) + " --check-config -c " + roi.string());
+  EXPECT_EQ(r.exit_code, 1) << r.output;
+  EXPECT_NE(r.output.find("roi.toml: [tracker] left ROI 1300,1000 200x200: not inside the "
+                          "1360x1024 image"),
+            std::string::npos)
+      << r.output;
   r = test::run(std::string(PULSETRACKD) + " -c /nonexistent.toml");
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("/nonexistent.toml: cannot open"), std::string::npos) << r.output;

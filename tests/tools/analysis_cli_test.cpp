@@ -241,6 +241,24 @@ TEST(AnalyzeCli, CortexCaseBreathingAndCardiacAgainstTheTruth) {
   expectPng(std::filesystem::path(out) / "fig9_motion.png", 1200, 330);
   EXPECT_NE(slurp(std::filesystem::path(out) / "peaks.csv").find(",breathing\n"),
             std::string::npos);
+  // The same analysis of the TrackingSession's deformation (the signal pulsetrackd publishes),
+  // which `track` wrote beside the track: the same peaks, against the same truth.
+  const std::string def = dir / "track-deformation.csv", out2 = dir / "motion-session";
+  auto an2 = test::run(kCli + " analyze " + def + " --out " + out2);
+  ASSERT_EQ(an2.exit_code, 0) << an2.output;
+  auto def_rows = record::readDeformationCsv(def);
+  ASSERT_TRUE(def_rows) << def_rows.error().message;
+  auto session = analysis::analyzeMotion(*def_rows);
+  ASSERT_TRUE(session) << session.error().message;
+  for (const auto& [name, f] :
+       std::vector<std::pair<std::string, double>>{{"breathing", 0.2}, {"cardiac", 1.0}}) {
+    const auto m = peak(*session, name), t = peak(*exact, name);
+    std::cout << name << " (session's deformation): " << m.frequency_hz << " Hz "
+              << m.amplitude_mm << " mm, truth " << t.amplitude_mm << " mm\n";
+    EXPECT_NEAR(m.frequency_hz, f, 0.02) << name;
+    EXPECT_NEAR(m.amplitude_mm, t.amplitude_mm, 0.05 * t.amplitude_mm) << name;
+  }
+  expectPng(std::filesystem::path(out2) / "fig9_motion.png", 1200, 330);
   // A broken track is named with its line.
   std::ofstream(dir / "bad.csv") << record::kTrackCsvHeader << "\n0,0.0,1,1,1,1,1,x,1,1,1,1,ok\n";
   auto bad = test::run(kCli + " analyze " + (dir / "bad.csv") + " --out " + out);
