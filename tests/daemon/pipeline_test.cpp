@@ -88,17 +88,23 @@ vision::Result<RenderedCortex> renderCortex(int n) {
   return r;
 }
 
+// A pipeline config for the tests: 20 Hz, no real-time policy, no memory lock.
+DaemonConfig testConfig(const std::string& rig_id) {
+  DaemonConfig config;
+  config.rig_id = rig_id;
+  config.fps = 20;
+  config.lock_memory = false;
+  config.capture = config.track = config.publish = {0, -1};
+  return config;
+}
+
 TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
   setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
   auto scene = renderCortex(4);
   ASSERT_TRUE(scene) << scene.error().message;
   const auto& [rig, frames] = *scene;
 
-  DaemonConfig config;
-  config.rig_id = "rig-stall";
-  config.fps = 20;
-  config.lock_memory = false;
-  config.capture = config.track = config.publish = {0, -1};
+  DaemonConfig config = testConfig("rig-stall");
   auto p = dds::Participant::create(78);
   ASSERT_TRUE(p) << p.error().message;
   auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
@@ -170,11 +176,7 @@ TEST(Pipeline, AV4l2CameraUnpluggedAndPluggedBackIsReportedThenTrackedAgain) {
   vc.right.device = "/dev/video1";
   vc.fps = 20;
   vc.reopen_ms = 200;
-  DaemonConfig config;
-  config.rig_id = "rig-v4l2";
-  config.fps = 20;
-  config.lock_memory = false;
-  config.capture = config.track = config.publish = {0, -1};
+  DaemonConfig config = testConfig("rig-v4l2");
   auto p = dds::Participant::create(79);
   ASSERT_TRUE(p) << p.error().message;
   auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,
@@ -224,11 +226,7 @@ TEST(Pipeline, StampsAreTheExposureOnTheSystemClock) {
   auto scene = renderCortex(4);
   ASSERT_TRUE(scene) << scene.error().message;
   const auto& [rig, frames] = *scene;
-  DaemonConfig config;
-  config.rig_id = "rig-stamps";
-  config.fps = 20;
-  config.lock_memory = false;
-  config.capture = config.track = config.publish = {0, -1};
+  DaemonConfig config = testConfig("rig-stamps");
   auto p = dds::Participant::create(84);
   ASSERT_TRUE(p) << p.error().message;
   auto features = dds::Reader::create(
@@ -291,11 +289,7 @@ TEST(Pipeline, AnRoiThatFindsNothingIsDegradedWithTheReasonOnHealth) {
   auto scene = renderCortex(4);
   ASSERT_TRUE(scene) << scene.error().message;
   const auto& [rig, frames] = *scene;
-  DaemonConfig config;
-  config.rig_id = "rig-roi";
-  config.fps = 20;
-  config.lock_memory = false;
-  config.capture = config.track = config.publish = {0, -1};
+  DaemonConfig config = testConfig("rig-roi");
   auto p = dds::Participant::create(85);
   ASSERT_TRUE(p) << p.error().message;
   auto health = dds::Reader::create(*p, dds::kHealthTopic, &pulsetrack_msgs_msg_dds__Health__desc,

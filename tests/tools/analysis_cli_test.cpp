@@ -253,8 +253,8 @@ TEST(AnalyzeCli, CortexCaseBreathingAndCardiacAgainstTheTruth) {
   for (const auto& [name, f] :
        std::vector<std::pair<std::string, double>>{{"breathing", 0.2}, {"cardiac", 1.0}}) {
     const auto m = peak(*session, name), t = peak(*exact, name);
-    std::cout << name << " (session's deformation): " << m.frequency_hz << " Hz "
-              << m.amplitude_mm << " mm, truth " << t.amplitude_mm << " mm\n";
+    std::cout << name << " (session's deformation): " << m.frequency_hz << " Hz " << m.amplitude_mm
+              << " mm, truth " << t.amplitude_mm << " mm\n";
     EXPECT_NEAR(m.frequency_hz, f, 0.02) << name;
     EXPECT_NEAR(m.amplitude_mm, t.amplitude_mm, 0.05 * t.amplitude_mm) << name;
   }

@@ -13,23 +13,12 @@
 #include "pulsetrack/sim/evaluate.hpp"
 #include "pulsetrack/sim/paper_rig.hpp"
 #include "pulsetrack/sim/scene.hpp"
+#include "sim/cortex_roi.hpp"
 
 namespace pulsetrack::vision {
 namespace {
 
-// The bounding box of the craniotomy's projection (radius r mm around the patch centre).
-Roi roiFor(const sim::StereoSimulator& s, double r) {
-  const sim::CortexScene& c = *s.cortex();
-  std::vector<cv::Point2f> l, rr;
-  for (int k = 0; k < 36; ++k) {
-    const double a = k * CV_PI / 18;
-    const cv::Vec3d p = c.position(r * std::cos(a), r * std::sin(a), 0.0);
-    const cv::Vec2d pl = s.rig().projectLeft(p), pr = s.rig().projectRight(p);
-    l.emplace_back(static_cast<float>(pl[0]), static_cast<float>(pl[1]));
-    rr.emplace_back(static_cast<float>(pr[0]), static_cast<float>(pr[1]));
-  }
-  return {cv::boundingRect(l), cv::boundingRect(rr)};
-}
+Roi roiFor(const sim::StereoSimulator& s, double r) { return test::cortexRoi(s, r); }
 
 struct TrackRun {
   sim::Evaluation ev;

@@ -20,24 +20,14 @@
 #include <opencv2/imgproc.hpp>
 
 #include "pulsetrack/sim/scene.hpp"
+#include "sim/cortex_roi.hpp"
 
 namespace pulsetrack::vision {
 namespace {
 
 const std::string kScene = std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-60s.toml";
 
-Roi roiFor(const sim::StereoSimulator& s, double r) {
-  const sim::CortexScene& c = *s.cortex();
-  std::vector<cv::Point2f> l, rr;
-  for (int k = 0; k < 36; ++k) {
-    const double a = k * CV_PI / 18;
-    const cv::Vec3d p = c.position(r * std::cos(a), r * std::sin(a), 0.0);
-    const cv::Vec2d pl = s.rig().projectLeft(p), pr = s.rig().projectRight(p);
-    l.emplace_back(static_cast<float>(pl[0]), static_cast<float>(pl[1]));
-    rr.emplace_back(static_cast<float>(pr[0]), static_cast<float>(pr[1]));
-  }
-  return {cv::boundingRect(l), cv::boundingRect(rr)};
-}
+Roi roiFor(const sim::StereoSimulator& s, double r) { return test::cortexRoi(s, r); }
 
 struct Truth {
   cv::Vec2d uv;
