@@ -1,5 +1,6 @@
 #include "pulsetrack/daemon/log.hpp"
 
+#include <spdlog/pattern_formatter.h>
 #include <spdlog/sinks/stdout_sinks.h>
 #include <spdlog/sinks/systemd_sink.h>
 
@@ -28,9 +29,11 @@ spdlog::sink_ptr sink() {
 void setup(bool force_stderr) {
   const std::lock_guard lock(g_mutex);
   if (!force_stderr && std::getenv("JOURNAL_STREAM") != nullptr) {
-    // The journal keeps the priority; the component goes in the message.
-    auto s = std::make_shared<spdlog::sinks::systemd_sink_mt>("pulsetrackd");
-    s->set_pattern("[%n] %v");
+    // The journal keeps the priority and the identifier; the component goes in the message
+    // (formatted, with no end-of-line: the journal has its own records).
+    auto s = std::make_shared<spdlog::sinks::systemd_sink_mt>("pulsetrackd", true);
+    s->set_formatter(std::make_unique<spdlog::pattern_formatter>(
+        "[%n] %v", spdlog::pattern_time_type::local, std::string()));
     g_sink = s;
   } else {
     g_sink.reset();

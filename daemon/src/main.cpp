@@ -199,7 +199,11 @@ int run(int argc, char** argv) {
     }
     const daemon::State s = pipeline.health(notifier);
     if (s != last) {
-      log_pipeline.info("state {}", daemon::toString(s));
+      // The journal's priority says how bad: fault is an error, degraded a warning.
+      log_pipeline.log(s == daemon::State::kFault      ? spdlog::level::err
+                       : s == daemon::State::kDegraded ? spdlog::level::warn
+                                                       : spdlog::level::info,
+                       "state {}", daemon::toString(s));
       last = s;
     }
     if (run_for > 0 &&

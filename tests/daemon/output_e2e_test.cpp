@@ -95,6 +95,11 @@ TEST(Ros2Output, ANodeBuiltFromTheMsgFilesReceivesANamespacedRigAndNothingOfAnot
   const Received rb = subscribe(domain, "site/or2", 3, 3, 1, 90);
   // Nobody publishes without a namespace here: a node there hears nothing.
   const Received none = subscribe(domain, "", 1, 0, 0, 3);
+  // pulsetrack ctl and listen reach a rig by its namespace.
+  const auto ctl = test::run(test::cli() + " ctl --domain " + std::to_string(domain) +
+                             " --namespace site/or2 redetect");
+  const auto listen = test::run(test::cli() + " listen --domain " + std::to_string(domain) +
+                                " --namespace or1 --count 3");
   kill(da.pid, SIGTERM);
   kill(db.pid, SIGTERM);
   EXPECT_EQ(da.wait(secs), 0);
@@ -127,6 +132,13 @@ TEST(Ros2Output, ANodeBuiltFromTheMsgFilesReceivesANamespacedRigAndNothingOfAnot
   }
   EXPECT_GE(with_velocity + 1, ra.deformation.size());
   EXPECT_GT(max_features_ok, 10);
+  EXPECT_EQ(ctl.exit_code, 0) << ctl.output;
+  EXPECT_NE(ctl.output.find("on rt/site/or2/pulsetrack/command, DDS domain 86, acknowledged"),
+            std::string::npos)
+      << ctl.output;
+  EXPECT_EQ(listen.exit_code, 0) << listen.output;
+  EXPECT_NE(listen.output.find("deform  rig-a"), std::string::npos) << listen.output;
+  EXPECT_EQ(listen.output.find("rig-b"), std::string::npos) << listen.output;
   EXPECT_EQ(none.exit_code, 1) << none.output;
   EXPECT_TRUE(none.features.empty()) << none.output;
 }

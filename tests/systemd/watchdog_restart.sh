@@ -4,7 +4,9 @@
 # sysusers file, the unit is the shipped one with only its paths changed, and the daemon's track
 # stage stalls for 5 s after 20 tracked pairs (--stall-track-after). Expected: READY=1 makes the unit
 # active, the missing WATCHDOG=1 makes systemd kill it (Result=watchdog) and restart it
-# (NRestarts >= 1), as the non-root user with SCHED_FIFO and memory locked.
+# (NRestarts >= 1), as the non-root user with SCHED_FIFO and memory locked. The daemon's output
+# goes to the journal (systemd-journald runs in the namespaces, on a tmpfs): its loggers must
+# reach it through the journal sink, with priorities and the component named.
 # Usage: watchdog_restart.sh PULSETRACKD SOURCE_DIR
 # Root only (namespaces, cgroups): skips loudly with exit 77 otherwise.
 set -euo pipefail
@@ -43,6 +45,8 @@ mount -t cgroup2 cgroup2 /sys/fs/cgroup
 mkdir -p /run/pt/etc-up /run/pt/etc-work /run/pt/bin /run/systemd/system
 # /etc writable in this namespace only (sysusers adds the user there).
 mount -t overlay overlay -o lowerdir=/etc,upperdir=/run/pt/etc-up,workdir=/run/pt/etc-work /etc
+# The journal on a tmpfs: nothing reaches the host's /var/log/journal.
+mkdir -p /var/log/journal && mount -t tmpfs tmpfs /var/log/journal
 systemd-sysusers "$src/systemd/pulsetrack.sysusers.conf"
 cp "$daemon" /run/pt/bin/pulsetrackd
 cp -r "$src/config" /run/pt/config
@@ -60,7 +64,7 @@ TOML
 sed -e 's|/usr/sbin/pulsetrackd|/run/pt/bin/pulsetrackd|g' \
     -e 's|/etc/pulsetrack/pulsetrackd.toml|/run/pt/config/test.toml|g' \
     -e 's|^ExecStart=\(.*\)|ExecStart=\1 --stall-track-after 20|' \
-    -e 's|^\[Service\]|[Service]\nStandardOutput=append:/run/pt/daemon.log\nStandardError=append:/run/pt/daemon.log\nEnvironmentFile=/run/pt/dds.env|' \
+    -e 's|^\[Service\]|[Service]\nEnvironmentFile=/run/pt/dds.env|' \
     -e 's|^\[Unit\]|[Unit]\nDefaultDependencies=no|' \
     "$src/systemd/pulsetrackd.service" >/run/systemd/system/pulsetrackd.service
 cat >/run/pt/dds.env <<'ENV'
@@ -71,7 +75,7 @@ cat >/run/systemd/system/pt-test.target <<UNIT
 Description=pulsetrack watchdog test
 AllowIsolate=yes
 DefaultDependencies=no
-Wants=pulsetrackd.service
+Wants=systemd-journald.socket systemd-journald.service pulsetrackd.service
 UNIT
 export container=pulsetrack-test
 exec /lib/systemd/systemd --system --unit=pt-test.target --log-target=console --log-color=no
@@ -110,8 +114,12 @@ for _ in $(seq 450); do
   [[ ${restarts:-0} -ge 1 && $(show ActiveState) == active ]] && break
   sleep 0.2
 done
-log=$(nsenter -t "$pid1" -m cat /run/pt/daemon.log 2>/dev/null || true)
-echo "--- daemon output (journal stand-in) ---"; echo "$log" | tail -20
+log=$(nsenter -t "$pid1" -m -p journalctl -u pulsetrackd -o cat --no-pager 2>/dev/null || true)
+echo "--- journalctl -u pulsetrackd ---"; echo "$log" | tail -20
+# The loggers' fields in the journal: the message with its component, priority info (6).
+verbose=$(nsenter -t "$pid1" -m -p journalctl -u pulsetrackd -o verbose --no-pager \
+  MESSAGE="[pipeline] running, rig rig-systemd, DDS domain 91, topics rt/pulsetrack/features" \
+  2>/dev/null || true)
 new_pid=$(show MainPID)
 user=$(nsenter -t "$pid1" -m -p ps -o user= -p "$new_pid" 2>/dev/null || true)
 policy=$(nsenter -t "$pid1" -m -p ps -L -o cls= -p "$new_pid" 2>/dev/null | sort -u | tr '\n' ' ' || true)
@@ -123,4 +131,10 @@ fail=0
 [[ $new_pid != "$active_pid" && $new_pid != 0 ]] || { echo "FAIL: the same process still runs"; fail=1; }
 [[ $user == pulsetrack ]] || { echo "FAIL: runs as '$user', not the pulsetrack user"; fail=1; }
 [[ $policy == *FF* ]] || { echo "FAIL: no SCHED_FIFO thread (classes: $policy)"; fail=1; }
+grep -q "PRIORITY=6" <<<"$verbose" && grep -q "SYSLOG_IDENTIFIER=pulsetrackd" <<<"$verbose" ||
+  { echo "FAIL: the daemon's '[pipeline] running' line is not in the journal with PRIORITY=6 and SYSLOG_IDENTIFIER=pulsetrackd"; echo "$verbose" | head -30; fail=1; }
+# The stall's fault is logged as an error (PRIORITY=3), not as information.
+nsenter -t "$pid1" -m -p journalctl -u pulsetrackd -p err --no-pager -o cat 2>/dev/null |
+  grep -q "^\[pipeline\] state fault" ||
+  { echo "FAIL: '[pipeline] state fault' is not in the journal at priority err"; fail=1; }
 exit $fail
