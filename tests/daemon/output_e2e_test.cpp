@@ -48,13 +48,14 @@ struct Received {
 };
 
 Received subscribe(uint32_t domain, const std::string& ns, int features, int deformation,
-                   int health, int timeout_s) {
+                   int health, int timeout_s, const std::string& command = "") {
   setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
   std::string cmd = std::string(ROS2_SUBSCRIBER) + " --domain " + std::to_string(domain);
   if (!ns.empty()) cmd += " --namespace " + ns;
   cmd += " --features " + std::to_string(features) + " --deformation " +
          std::to_string(deformation) + " --health " + std::to_string(health) + " --timeout " +
          std::to_string(timeout_s);
+  if (!command.empty()) cmd += " --command " + command;
   const test::CommandResult r = test::run(cmd);
   Received got;
   got.exit_code = r.exit_code;
@@ -95,6 +96,9 @@ TEST(Ros2Output, ANodeBuiltFromTheMsgFilesReceivesANamespacedRigAndNothingOfAnot
   const Received rb = subscribe(domain, "site/or2", 3, 3, 1, 90);
   // Nobody publishes without a namespace here: a node there hears nothing.
   const Received none = subscribe(domain, "", 1, 0, 0, 3);
+  // A ROS 2 node's Command (built from Command.msg, reliable keep last 10): an ROI outside the
+  // image is refused, and the refusal is on that rig's health.
+  const Received commanded = subscribe(domain, "or1", 0, 0, 30, 60, "set_roi");
   // pulsetrack ctl and listen reach a rig by its namespace.
   const auto ctl = test::run(test::cli() + " ctl --domain " + std::to_string(domain) +
                              " --namespace site/or2 redetect");
@@ -132,6 +136,13 @@ TEST(Ros2Output, ANodeBuiltFromTheMsgFilesReceivesANamespacedRigAndNothingOfAnot
   }
   EXPECT_GE(with_velocity + 1, ra.deformation.size());
   EXPECT_GT(max_features_ok, 10);
+  EXPECT_NE(commanded.output.find("command sent request=77"), std::string::npos)
+      << commanded.output;
+  for (const auto& h : commanded.health) EXPECT_EQ(h.at("rig"), "rig-a");
+  EXPECT_NE(commanded.output.find("command 77 'set_roi' refused: left ROI 1300,1000 100x100: not "
+                                  "inside"),
+            std::string::npos)
+      << commanded.output;
   EXPECT_EQ(ctl.exit_code, 0) << ctl.output;
   EXPECT_NE(ctl.output.find("on rt/site/or2/pulsetrack/command, DDS domain 86, acknowledged"),
             std::string::npos)

@@ -57,6 +57,7 @@ static void onSignal(int sig) {
 static void usage(FILE* out) {
   fprintf(out,
           "usage: ros2_subscriber --domain N [--namespace NS] [--features N] [--deformation N]\n"
+          "       [--command start|stop|redetect|set_roi] (publishes one Command first)\n"
           "                       [--health N] [--timeout S]\n"
           "Subscribes to rt/[NS/]pulsetrack/{features,deformation,health} as a ROS 2 node over\n"
           "rmw_cyclonedds_cpp would (types from the .msg files, ROS 2 QoS, XCDR1, keyless) and\n"
@@ -277,6 +278,7 @@ int main(int argc, char** argv) {
   const char* ns = "";
   uint32_t want[kTopics] = {1, 1, 1};
   double timeout_s = 30.0;
+  const char* command = NULL;  // --command: publish one Command as a ROS 2 node would
   for (int i = 1; i < argc; ++i) {
     const char* a = argv[i];
     if (strcmp(a, "--help") == 0 || strcmp(a, "-h") == 0) {
@@ -297,6 +299,8 @@ int main(int argc, char** argv) {
       ok = ok && parseU32(v, 1000000000u, &want[kHealth]);
     else if (strcmp(a, "--timeout") == 0)
       ok = ok && parseSeconds(v, &timeout_s);
+    else if (strcmp(a, "--command") == 0)
+      command = v;
     else {
       fprintf(stderr, "ros2_subscriber: unknown argument '%s'\n", a);
       usage(stderr);
@@ -370,6 +374,47 @@ int main(int argc, char** argv) {
     if (cond < 0) return fail("cannot create a read condition on", topic[t], cond);
     const dds_return_t rc = dds_waitset_attach(ws, cond, t);
     if (rc != DDS_RETCODE_OK) return fail("cannot wait on", topic[t], rc);
+  }
+
+  // --command WORD: one pulsetrack_msgs/Command on rt/[NS/]pulsetrack/command, as a ROS 2 node
+  // publishes it with rclcpp::QoS(10).reliable() (volatile), after the daemon's reader matched.
+  // set_roi carries an ROI outside any image (1300,1000 100x100), which the daemon must refuse
+  // on health: "command 77 'set_roi' refused: ...".
+  if (command != NULL) {
+    char ctopic[256];
+    snprintf(ctopic, sizeof ctopic, "rt/%s%spulsetrack/command", ns, ns[0] ? "/" : "");
+    const dds_entity_t tp =
+        dds_create_topic(pp, &pulsetrack_msgs_msg_dds__Command__desc, ctopic, NULL, NULL);
+    if (tp < 0) return fail("cannot create the topic", ctopic, tp);
+    dds_qos_t* qos = ros2Qos(10, true, false);
+    const dds_entity_t w = dds_create_writer(pp, tp, qos, NULL);
+    dds_delete_qos(qos);
+    if (w < 0) return fail("cannot create a writer on", ctopic, w);
+    dds_publication_matched_status_t m;
+    memset(&m, 0, sizeof m);
+    const int64_t until = monotonicNs() + (int64_t)(timeout_s * 1e9);
+    while (!g_stop && monotonicNs() < until &&
+           (dds_get_publication_matched_status(w, &m) != DDS_RETCODE_OK || m.current_count == 0))
+      dds_sleepfor(DDS_MSECS(10));
+    if (m.current_count == 0) {
+      fprintf(stderr, "ros2_subscriber: no reader matched on %s\n", ctopic);
+      return 1;
+    }
+    pulsetrack_msgs_msg_dds__Command_ c;
+    memset(&c, 0, sizeof c);
+    c.rig_id = (char*)"";
+    c.request_id = 77;
+    c.command = (char*)command;
+    const int32_t roi[4] = {1300, 1000, 100, 100};
+    memcpy(c.roi_left, roi, sizeof roi);
+    memcpy(c.roi_right, roi, sizeof roi);
+    c.depth_tolerance_m = 0.02;
+    const dds_return_t rc = dds_write(w, &c);
+    if (rc != DDS_RETCODE_OK) return fail("cannot write on", ctopic, rc);
+    if (dds_wait_for_acks(w, DDS_SECS(5)) != DDS_RETCODE_OK)
+      fprintf(stderr, "ros2_subscriber: the command on %s was not acknowledged\n", ctopic);
+    printf("command sent request=77 command=%s topic=%s\n", command, ctopic);
+    fflush(stdout);
   }
 
   uint32_t got[kTopics] = {0, 0, 0};
