@@ -30,13 +30,12 @@ void BM_TrackerStep(benchmark::State& state) {
     sim.render(i, left[static_cast<size_t>(i)], right[static_cast<size_t>(i)]);
   pulsetrack::vision::TrackerConfig config;
   config.refinement = state.range(0) != 0;
-  pulsetrack::vision::StereoTracker tracker(sim.rig(), config);
-  // The whole craniotomy, to reach the 100 features.
+  // The whole craniotomy, to reach the 100 features (the detector fills the ceiling).
   const pulsetrack::vision::Roi roi{{440, 300, 480, 400}, {433, 305, 480, 400}};
-  config.max_features = 125;  // candidates; about 100 pass the gates
-  config.per_cell = 6;
+  config.max_features = 100;
   config.grid_cols = config.grid_rows = 6;
   config.min_distance_px = 9;
+  pulsetrack::vision::StereoTracker tracker(sim.rig(), config);
   auto ok = tracker.initialize(left[0], right[0], roi, 20.0);
   if (!ok) {
     state.SkipWithError(ok.error().message.c_str());

@@ -8,14 +8,15 @@ namespace pulsetrack::sim {
 CameraEffects::CameraEffects(const CameraEffectsSpec& spec, cv::Size size, unsigned seed)
     : spec_(spec), seed_(seed), rng_(seed * 7919ULL + 17ULL) {
   vignette_.create(size, CV_32FC1);
-  const double cx = (size.width - 1) / 2.0;
-  const double cy = (size.height - 1) / 2.0;
-  const double corner2 = cx * cx + cy * cy;
+  const double cx = (size.width - 1) / 2.0 + spec.vignetting_centre_px[0];
+  const double cy = (size.height - 1) / 2.0 + spec.vignetting_centre_px[1];
+  const double hx = (size.width - 1) / 2.0, hy = (size.height - 1) / 2.0;
+  const double corner2 = hx * hx + hy * hy;
   for (int y = 0; y < size.height; ++y) {
     auto* row = vignette_.ptr<float>(y);
     for (int x = 0; x < size.width; ++x) {
       const double r2 = ((x - cx) * (x - cx) + (y - cy) * (y - cy)) / corner2;
-      row[x] = static_cast<float>(1.0 - spec.vignetting * r2);
+      row[x] = static_cast<float>(std::max(0.0, 1.0 - spec.vignetting * r2));
     }
   }
   work_.create(size, CV_32FC1);
@@ -23,7 +24,8 @@ CameraEffects::CameraEffects(const CameraEffectsSpec& spec, cv::Size size, unsig
 }
 
 double CameraEffects::gain(double t) const {
-  return 1.0 + spec_.gain_amplitude * std::sin(2.0 * CV_PI * t / spec_.gain_period_s);
+  return spec_.gain * (1.0 + spec_.gain_amplitude * std::sin(2.0 * CV_PI * t / spec_.gain_period_s +
+                                                             spec_.gain_phase_deg * CV_PI / 180.0));
 }
 
 bool CameraEffects::dropped(uint64_t index) const {

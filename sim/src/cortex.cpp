@@ -89,24 +89,38 @@ void growVessel(cv::Point2d p, double heading, double width, int depth, double l
   }
 }
 
-// Squared distance between segments p0-p1 and q0-q1.
-double segmentDistance2(const cv::Vec3d& p0, const cv::Vec3d& p1, const cv::Vec3d& q0,
-                        const cv::Vec3d& q1) {
-  const cv::Vec3d d1 = p1 - p0, d2 = q1 - q0, r = p0 - q0;
-  const double a = d1.dot(d1), e = d2.dot(d2), f = d2.dot(r);
-  double s = 0.0, t = 0.0;
-  const double c = d1.dot(r), b = d1.dot(d2), denom = a * e - b * b;
-  s = denom > 1e-12 ? std::clamp((b * f - c * e) / denom, 0.0, 1.0) : 0.0;
-  t = (b * s + f) / e;
-  if (t < 0.0) {
-    t = 0.0;
-    s = std::clamp(-c / a, 0.0, 1.0);
-  } else if (t > 1.0) {
-    t = 1.0;
-    s = std::clamp((b - c) / a, 0.0, 1.0);
+// Whether the segment p0-p1 passes through the finite cylinder of radius r around q0-q1 with
+// flat caps (the rendered instrument: its mesh is capped flat, so a capsule test would call
+// points up to a radius beyond the tip hidden). The segment's points inside the infinite
+// cylinder form an interval of s (a quadratic), those between the caps another (linear).
+bool segmentHitsCylinder(const cv::Vec3d& p0, const cv::Vec3d& p1, const cv::Vec3d& q0,
+                         const cv::Vec3d& q1, double r) {
+  const cv::Vec3d axis = q1 - q0;
+  const double len = cv::norm(axis);
+  if (len <= 0.0) return false;
+  const cv::Vec3d u = axis / len;
+  const cv::Vec3d d = p1 - p0, w = p0 - q0;
+  // Axial coordinate a(s) = (w + s d).u in [0, len].
+  const double a0 = w.dot(u), da = d.dot(u);
+  double lo = 0.0, hi = 1.0;
+  if (std::abs(da) < 1e-12) {
+    if (a0 < 0.0 || a0 > len) return false;
+  } else {
+    double s0 = -a0 / da, s1 = (len - a0) / da;
+    if (s0 > s1) std::swap(s0, s1);
+    lo = std::max(lo, s0);
+    hi = std::min(hi, s1);
   }
-  const cv::Vec3d diff = (p0 + d1 * s) - (q0 + d2 * t);
-  return diff.dot(diff);
+  if (lo > hi) return false;
+  // Radial: |(w + s d) - a(s) u|^2 <= r^2.
+  const cv::Vec3d wp = w - a0 * u, dp = d - da * u;
+  const double qa = dp.dot(dp), qb = 2.0 * wp.dot(dp), qc = wp.dot(wp) - r * r;
+  if (qa < 1e-12) return qc <= 0.0;
+  const double disc = qb * qb - 4.0 * qa * qc;
+  if (disc < 0.0) return false;
+  const double sq = std::sqrt(disc);
+  const double r0 = (-qb - sq) / (2.0 * qa), r1 = (-qb + sq) / (2.0 * qa);
+  return std::max(lo, r0) <= std::min(hi, r1);
 }
 
 }  // namespace
@@ -223,7 +237,10 @@ bool CortexScene::materialAt(const vision::StereoRig& rig, const cv::Vec2d& px, 
 cv::Vec3d CortexScene::instrumentTip(double t) const {
   const Instrument& in = spec_.instrument;
   const double phase = std::clamp((t - in.start_s) / in.duration_s, 0.0, 1.0);
-  const double s = std::sin(CV_PI * phase);
+  const double ramp = (1.0 - in.hold_fraction) / 2.0;
+  const double s = phase < ramp         ? std::sin(CV_PI / 2.0 * phase / ramp)
+                   : phase > 1.0 - ramp ? std::sin(CV_PI / 2.0 * (1.0 - phase) / ramp)
+                                        : 1.0;
   const cv::Vec2d xy = in.from_mm + (in.to_mm - in.from_mm) * s;
   return {xy[0], xy[1], in.height_mm};
 }
@@ -233,7 +250,7 @@ bool CortexScene::occluded(const cv::Vec3d& p, const cv::Vec3d& camera_centre, d
   if (!in.enabled || t < in.start_s || t > in.start_s + in.duration_s) return false;
   const cv::Vec3d tip = r_cs_ * instrumentTip(t) + t_cs_;
   const cv::Vec3d end = tip + r_cs_ * cv::Vec3d(-in.length_mm, 0, 0);
-  return segmentDistance2(camera_centre, p, tip, end) < in.radius_mm * in.radius_mm;
+  return segmentHitsCylinder(camera_centre, p, tip, end, in.radius_mm);
 }
 
 void CortexScene::buildTexture() {

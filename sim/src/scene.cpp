@@ -16,13 +16,31 @@ using vision::fail;
 
 namespace {
 
-void readCamera(TableReader& r, CameraEffectsSpec& c) {
+void readCameraKeys(TableReader& r, CameraEffectsSpec& c) {
   c.blur_sigma_px = r.number("blur_sigma_px", c.blur_sigma_px, 0.0, 10.0);
   c.noise_sigma = r.number("noise_sigma", c.noise_sigma, 0.0, 50.0);
   c.vignetting = r.number("vignetting", c.vignetting, 0.0, 0.9);
+  const auto vc =
+      r.numbers("vignetting_centre_px", {c.vignetting_centre_px[0], c.vignetting_centre_px[1]}, 2,
+                2, -2000.0, 2000.0);
+  c.vignetting_centre_px = {vc[0], vc[1]};
+  c.gain = r.number("gain", c.gain, 0.2, 5.0);
   c.gain_amplitude = r.number("gain_amplitude", c.gain_amplitude, 0.0, 0.9);
   c.gain_period_s = r.number("gain_period_s", c.gain_period_s, 0.1, 1e6);
-  c.drop_probability = r.number("drop_probability", c.drop_probability, 0.0, 0.5);
+  c.gain_phase_deg = r.number("gain_phase_deg", c.gain_phase_deg, -360.0, 360.0);
+}
+
+// [camera] applies to both cameras; [camera.right] overrides any of its keys for the right one
+// (unequal gains, independent drift, different lenses). Frame drops are the pair's.
+void readCamera(TableReader& r, CameraEffectsSpec& left, std::optional<CameraEffectsSpec>& right) {
+  readCameraKeys(r, left);
+  left.drop_probability = r.number("drop_probability", left.drop_probability, 0.0, 0.5);
+  if (const toml::table* t = r.table("right")) {
+    right = left;
+    TableReader rr(*t, r.file(), r.child("right"), r.errorSink());
+    readCameraKeys(rr, *right);
+    rr.finish();
+  }
   r.finish();
 }
 
@@ -104,6 +122,7 @@ void readCortex(TableReader& r, CortexSpec& c) {
     const auto from = ir.numbers("from_mm", {in.from_mm[0], in.from_mm[1]}, 2, 2, -500.0, 500.0);
     const auto to = ir.numbers("to_mm", {in.to_mm[0], in.to_mm[1]}, 2, 2, -500.0, 500.0);
     in.from_mm = {from[0], from[1]};
+    in.hold_fraction = ir.number("hold_fraction", in.hold_fraction, 0.0, 0.95);
     in.to_mm = {to[0], to[1]};
     in.albedo = ir.number("albedo", in.albedo, 0.0, 1.0);
     ir.finish();
@@ -171,7 +190,7 @@ vision::Result<SceneSpec> parseScene(const std::string& text, const std::filesys
   s.cortex.oscillations = paperMotion();
   if (const toml::table* t = r.table("camera")) {
     TableReader cr(*t, file, "camera", &error);
-    readCamera(cr, s.camera);
+    readCamera(cr, s.camera, s.camera_right);
   }
   if (const toml::table* t = r.table("cortex")) {
     TableReader cr(*t, file, "cortex", &error);

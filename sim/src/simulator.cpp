@@ -18,7 +18,7 @@ StereoSimulator::StereoSimulator(const SceneSpec& spec, const vision::StereoRig&
       rig_(rig),
       raster_(rig.left.imageSize(), spec.supersample),
       left_fx_(spec.camera, rig.left.imageSize(), spec.seed * 2 + 1),
-      right_fx_(spec.camera, rig.left.imageSize(), spec.seed * 2 + 2) {
+      right_fx_(spec.camera_right.value_or(spec.camera), rig.left.imageSize(), spec.seed * 2 + 2) {
   if (spec_.kind == SceneKind::kCortex) {
     cortex_ = std::make_unique<CortexScene>(spec_.cortex);
   } else {

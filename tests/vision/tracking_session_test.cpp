@@ -18,6 +18,7 @@
 #include <iostream>
 #include <map>
 #include <opencv2/imgproc.hpp>
+#include <set>
 
 #include "pulsetrack/sim/scene.hpp"
 #include "sim/cortex_roi.hpp"
@@ -57,8 +58,6 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
   double t_first = 0.0;
   cv::Vec3d prev_meas(0, 0, 0), prev_truth(0, 0, 0);
   bool have_prev = false;
-  std::vector<std::pair<int, FeatureStatus>> old_ids;  // the last pair's features
-  std::map<int, cv::Vec2d> old_px;
   cv::Mat l, r;
   for (int i = first; i < last; ++i) {
     if (s.dropped(i)) continue;
@@ -95,10 +94,15 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
     if (pr.detected && i != first) {
       ++redetections_seen;
     }
-    if (pr.detected && i != first) {
-      for (const auto& [id, st] : old_ids) add_truth(id, old_px[id], st);
-    } else {
-      for (const Feature& f : pr.features) add_truth(f.id, f.left, f.status);
+    // A re-detection fills: the features there were keep their ids and references (they were
+    // measured in this pair); the new ones start here.
+    std::set<int> new_ids;
+    for (const Feature& f : pr.features) {
+      if (pr.detected && i != first && !truth.contains(f.id)) {
+        new_ids.insert(f.id);
+        continue;
+      }
+      add_truth(f.id, f.left, f.status);
     }
     ASSERT_TRUE(d.valid) << "pair " << i;
     ASSERT_FALSE(true_d.empty()) << "pair " << i;
@@ -128,21 +132,15 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
     true_out = mean + true_offset;
     prev_true_d = true_d;
     if (pr.detected) {  // the new features' reference is this pair: their displacement is 0
-      prev_true_d.clear();
       for (const Feature& f : pr.features) {
-        if (f.status == FeatureStatus::kOk) prev_true_d[f.id] = cv::Vec3d(0, 0, 0);
+        if (f.status == FeatureStatus::kOk && new_ids.contains(f.id))
+          prev_true_d[f.id] = cv::Vec3d(0, 0, 0);
         Truth& tr = truth[f.id];
         if (!tr.found) {
           tr.found = scene.materialAt(s.rig(), f.left, t, tr.uv);
           tr.t_ref = t;
         }
       }
-    }
-    old_ids.clear();
-    old_px.clear();
-    for (const Feature& f : pr.features) {
-      old_ids.emplace_back(f.id, f.status);
-      old_px[f.id] = f.left;
     }
     if (i == first) {
       t_first = t;

@@ -56,6 +56,8 @@ const char* toString(Gate g) noexcept {
       return "triangulation";
     case Gate::kStereoNcc:
       return "stereo_ncc";
+    case Gate::kLeftRight:
+      return "left_right";
   }
   return "unknown";
 }
@@ -70,6 +72,12 @@ namespace {
 constexpr int kHalf = kAffineHalf;  // 15x15 templates
 constexpr int kSide = kAffineSide;
 constexpr size_t kGainNeighbours = 10;  // the sheen gate's local gain ratio
+// The stereo match's affine refinement at detection stops when a corner of the patch moves less
+// than this: 1e-3 px (the refiner's default) is under the noise of an 8-bit patch, and the
+// iteration then wanders near the optimum for its 20 steps and "does not converge" - on the
+// hard scene that rejected 20 % of the right matches (gate_eval). 0.01 px is the refresh's.
+constexpr int kDetectIterations = 20;
+constexpr double kDetectEpsilonPx = 1e-3;
 
 // NCC of `t` at every template-centre position (x0 + i, y0 + j), 0 <= i < nx, 0 <= j < ny.
 // Windows whose padded reads would leave the image are copied (edge-replicated) into
@@ -167,6 +175,10 @@ StereoTracker::StereoTracker(const StereoRig& rig, const TrackerConfig& config)
   const int side = 2 * config_.video_search_px + 1;
   scores_.resize(static_cast<size_t>(side) * side);
   residuals_.resize(static_cast<size_t>(std::max(config_.max_features, 1)));
+  const auto refresh = static_cast<size_t>(std::max(config_.stereo_refresh, 1));
+  refresh_ratio_.resize(refresh);
+  refresh_sorted_.resize(refresh);
+  refresh_index_.resize(refresh);
 }
 
 int StereoTracker::okCount() const noexcept {
@@ -175,7 +187,8 @@ int StereoTracker::okCount() const noexcept {
   }));
 }
 
-std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img) const {
+std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img,
+                                                     std::vector<cv::Point2d>* masked) const {
   cv::Mat specular = img >= config_.specular_threshold;
   const int sd = config_.specular_dilate_px;
   cv::dilate(specular, specular,
@@ -205,48 +218,53 @@ std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img) const {
     int cell;
   };
   std::vector<Candidate> maxima;
+  std::vector<Candidate> glinting;  // maxima the specular mask removes (for evaluation)
   double max_response = 0.0;
   for (int y = margin; y < img.rows - margin; ++y) {
     for (int x = margin; x < img.cols - margin; ++x) {
       const float h = harris.at<float>(y, x);
-      if (h <= 0.0F || h < dilated.at<float>(y, x) || specular.at<uint8_t>(y, x) != 0 ||
-          dark.at<uint8_t>(y, x) == 0) {
-        continue;
-      }
+      if (h <= 0.0F || h < dilated.at<float>(y, x) || dark.at<uint8_t>(y, x) == 0) continue;
       const cv::Vec6f& e = eig.at<cv::Vec6f>(y, x);
       const float l1 = std::max(e[0], e[1]), l2 = std::min(e[0], e[1]);
       if (!(l2 > 0.0F) || l2 < static_cast<float>(config_.min_isotropy) * l1) continue;
       const int cell =
           std::min(config_.grid_rows - 1, y * config_.grid_rows / img.rows) * config_.grid_cols +
           std::min(config_.grid_cols - 1, x * config_.grid_cols / img.cols);
+      if (specular.at<uint8_t>(y, x) != 0) {
+        if (masked != nullptr) glinting.push_back({{x, y}, h, cell});
+        continue;
+      }
       maxima.push_back({{x, y}, h, cell});
       max_response = std::max(max_response, static_cast<double>(h));
     }
   }
   std::sort(maxima.begin(), maxima.end(),
             [](const Candidate& a, const Candidate& b) { return a.response > b.response; });
-  std::vector<cv::Point> chosen;
-  // The sensitivity is lowered until the ceiling is met (paper, section 2.B).
-  for (double q = config_.sensitivity_start; q >= config_.sensitivity_min; q *= 0.5) {
-    chosen.clear();
-    std::vector<int> per_cell(static_cast<size_t>(config_.grid_cols * config_.grid_rows), 0);
-    for (const Candidate& c : maxima) {
-      if (c.response < q * max_response) break;
-      if (per_cell[static_cast<size_t>(c.cell)] >= config_.per_cell) continue;
-      const bool crowded = std::any_of(chosen.begin(), chosen.end(), [&](const cv::Point& o) {
+  // The strongest first, down to sensitivity_min of the strongest (the paper lowers the
+  // sensitivity until the ceiling is met; here the caller takes them in this order, spaced by
+  // min_distance_px, until the ceiling is met, per cell first: candidates that fail a gate no
+  // longer leave the ROI short). At most kCandidateFactor x the ceiling.
+  constexpr int kCandidateFactor = 8;
+  std::vector<cv::Point2d> out;
+  for (const Candidate& c : maxima) {
+    if (c.response < config_.sensitivity_min * max_response) break;
+    if (static_cast<int>(out.size()) >= kCandidateFactor * config_.max_features) break;
+    out.emplace_back(c.p.x, c.p.y);
+  }
+  if (masked != nullptr) {
+    // The strongest of the masked maxima, spaced as the chosen ones are.
+    std::sort(glinting.begin(), glinting.end(),
+              [](const Candidate& a, const Candidate& b) { return a.response > b.response; });
+    masked->clear();
+    for (const Candidate& c : glinting) {
+      if (static_cast<int>(masked->size()) >= config_.max_features) break;
+      const bool crowded = std::any_of(masked->begin(), masked->end(), [&](const cv::Point2d& o) {
         return std::abs(o.x - c.p.x) < config_.min_distance_px &&
                std::abs(o.y - c.p.y) < config_.min_distance_px;
       });
-      if (crowded) continue;
-      chosen.push_back(c.p);
-      ++per_cell[static_cast<size_t>(c.cell)];
-      if (static_cast<int>(chosen.size()) >= config_.max_features) break;
+      if (!crowded) masked->emplace_back(c.p.x, c.p.y);
     }
-    if (static_cast<int>(chosen.size()) >= config_.max_features) break;
   }
-  std::vector<cv::Point2d> out;
-  out.reserve(chosen.size());
-  for (const cv::Point& p : chosen) out.emplace_back(p.x, p.y);
   return out;
 }
 
@@ -309,6 +327,16 @@ std::vector<cv::Point2d> StereoTracker::detectDarkBlobs(const cv::Mat& img) cons
 
 Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
                                       double depth_tolerance_mm) {
+  return detect(left, right, roi, depth_tolerance_mm, false);
+}
+
+Result<int> StereoTracker::redetect(const cv::Mat& left, const cv::Mat& right) {
+  if (depth_tolerance_mm_ <= 0.0) return fail("tracker: redetect() before initialize()");
+  return detect(left, right, roi_, depth_tolerance_mm_, true);
+}
+
+Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
+                                  double depth_tolerance_mm, bool fill) {
   const cv::Size size = rig_.left.imageSize();
   for (const cv::Mat* img : {&left, &right}) {
     if (img->type() != CV_8UC1 || img->size() != size) {
@@ -329,10 +357,85 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
   if (!(depth_tolerance_mm > 0.0))
     return fail("tracker: the depth tolerance must be positive (mm)");
 
+  if (!fill) {
+    features_.clear();
+    states_.clear();
+  } else {
+    // Retire the features hidden for too long: their region is filled below.
+    size_t kept = 0;
+    for (size_t i = 0; i < features_.size(); ++i) {
+      if (states_[i].not_ok_pairs > config_.retire_after_pairs) continue;
+      features_[kept] = features_[i];
+      states_[kept] = states_[i];
+      ++kept;
+    }
+    features_.resize(kept);
+    states_.resize(kept);
+  }
+  const size_t first_new = features_.size();
+
   // Section 2.B, detection on the left ROI.
   const cv::Mat img = left(roi.left);
-  const std::vector<cv::Point2d> chosen =
-      config_.detector == Detector::kDarkBlobs ? detectDarkBlobs(img) : detectHarris(img);
+  std::vector<cv::Point2d> masked;
+  std::vector<cv::Point2d> chosen =
+      config_.detector == Detector::kDarkBlobs
+          ? detectDarkBlobs(img)
+          : detectHarris(img, config_.report_masked ? &masked : nullptr);
+  if (fill) {
+    // Only where no feature is (ok or hidden: a hidden one comes back under its id).
+    const double d2 = double(config_.fill_distance_px) * config_.fill_distance_px;
+    std::erase_if(chosen, [&](const cv::Point2d& p) {
+      const cv::Vec2d at(p.x + roi.left.x, p.y + roi.left.y);
+      return std::any_of(features_.begin(), features_.end(), [&](const Feature& f) {
+        const cv::Vec2d d = f.left - at;
+        return d.dot(d) < d2;
+      });
+    });
+  }
+  const size_t capacity =
+      static_cast<size_t>(std::max(config_.max_features, 0)) -
+      std::min<size_t>(first_new, static_cast<size_t>(std::max(config_.max_features, 0)));
+  // The order to match them in: every cell's strongest, then every cell's second, ... (spread
+  // over the ROI; a cell with little texture leaves its share to the others). The masked ones
+  // (evaluation only) last.
+  {
+    const int cols = std::max(1, config_.grid_cols), rows = std::max(1, config_.grid_rows);
+    std::vector<int> per_cell(static_cast<size_t>(cols * rows), 0);
+    for (const Feature& f : features_) {  // fill: the cells' features count
+      const cv::Vec2d p = f.left - cv::Vec2d(roi.left.x, roi.left.y);
+      const int cx = std::clamp(static_cast<int>(p[0]) * cols / img.cols, 0, cols - 1);
+      const int cy = std::clamp(static_cast<int>(p[1]) * rows / img.rows, 0, rows - 1);
+      ++per_cell[static_cast<size_t>(cy * cols + cx)];
+    }
+    std::vector<std::pair<int, cv::Point2d>> ranked;  // (rank in its cell, point)
+    ranked.reserve(chosen.size());
+    for (const cv::Point2d& p : chosen) {
+      const int cx = std::clamp(static_cast<int>(p.x) * cols / img.cols, 0, cols - 1);
+      const int cy = std::clamp(static_cast<int>(p.y) * rows / img.rows, 0, rows - 1);
+      ranked.emplace_back(per_cell[static_cast<size_t>(cy * cols + cx)]++, p);
+    }
+    std::stable_sort(ranked.begin(), ranked.end(),
+                     [](const auto& a, const auto& b) { return a.first < b.first; });
+    // Spaced in that order (a corner too close to one taken before it is not matched).
+    chosen.clear();
+    for (const auto& [rank, p] : ranked) {
+      const bool crowded = std::any_of(chosen.begin(), chosen.end(), [&](const cv::Point2d& o) {
+        return std::abs(o.x - p.x) < config_.min_distance_px &&
+               std::abs(o.y - p.y) < config_.min_distance_px;
+      });
+      if (!crowded) chosen.push_back(p);
+    }
+  }
+  // As many candidates as the ceiling are matched (the paper's count: the strongest corners
+  // make the most accurate features); more only while fewer than min_fill of the ceiling
+  // passed the per-candidate gates (glints, sheen and gain differences rejected many), up to
+  // the ceiling plus a fifth (the sheen gate below takes some), then trimmed to the ceiling.
+  const size_t slack = capacity + capacity / 5;
+  const auto fill_target =
+      static_cast<size_t>(std::ceil(config_.min_fill * static_cast<double>(capacity)));
+  size_t matched = 0;
+  const size_t n_chosen = chosen.size();
+  chosen.insert(chosen.end(), masked.begin(), masked.end());
 
   // The stereo search box: triangulate the ROI corners pairwise, add and subtract the depth
   // tolerance, reproject the eight corners; their left-to-right offsets bound the search.
@@ -365,6 +468,14 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
             sx1 = static_cast<int>(std::ceil(dx_max)) + 2;
   const int sy0 = static_cast<int>(std::floor(dy_min)) - 2,
             sy1 = static_cast<int>(std::ceil(dy_max)) + 2;
+  // A depth tolerance reaching behind the cameras, or a rig that maps the box off the image,
+  // would make the box unbounded: refuse it rather than search the whole plane.
+  if (!(dx_max - dx_min < size.width) || !(dy_max - dy_min < size.height)) {
+    return fail(fmt::format(
+        "tracker: the stereo search box for depth tolerance {} mm spans {:.0f} x {:.0f} px, more "
+        "than the image (is the tolerance larger than the distance, or the ROI pair wrong?)",
+        depth_tolerance_mm, dx_max - dx_min, dy_max - dy_min));
+  }
   const int nx = sx1 - sx0 + 1, ny = sy1 - sy0 + 1;
   std::vector<float> scores(static_cast<size_t>(nx) * static_cast<size_t>(ny));
   scratch_.assign(
@@ -373,10 +484,15 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
       0);
 
   candidates_.clear();
-  std::vector<size_t> candidate_of_feature;
-  features_.clear();
-  states_.clear();
-  for (const cv::Point2d& p : chosen) {
+  std::vector<size_t> candidate_of_feature(first_new, SIZE_MAX);
+  for (size_t k = 0; k < chosen.size(); ++k) {
+    const cv::Point2d& p = chosen[k];
+    const bool is_masked = k >= n_chosen;
+    if (!is_masked) {
+      const size_t passed = features_.size() - first_new;
+      if (passed >= slack || (matched >= capacity && passed >= fill_target)) continue;
+      ++matched;
+    }
     // The template is cut at the nearest pixel; the refinements work from the sub-pixel point.
     const cv::Point pl(static_cast<int>(std::lround(p.x)) + l.x,
                        static_cast<int>(std::lround(p.y)) + l.y);
@@ -392,9 +508,19 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     const Peak peak = findPeak(scores.data(), nx, ny);
     c.ncc = peak.score;
     c.right = {pl.x + sx0 + peak.i + peak.sub.dx, pl.y + sy0 + peak.j + peak.sub.dy};
+    // Every gate is evaluated (failed holds them all, for `pulsetrack gates`); the first that
+    // fails, in this order, is the candidate's gate.
+    const auto check = [&c](bool fails, FeatureStatus st, Gate g) {
+      if (!fails) return;
+      c.failed |= gateBit(g);
+      if (c.gate == Gate::kNone) {
+        c.status = st;
+        c.gate = g;
+      }
+    };
+    check(is_masked, FeatureStatus::kOccluded, Gate::kGlint);
     if (!peak.interior) {
-      c.status = FeatureStatus::kLost;
-      c.gate = Gate::kNoPeak;
+      check(true, FeatureStatus::kLost, Gate::kNoPeak);
       candidates_.push_back(c);
       continue;
     }
@@ -415,7 +541,7 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
         AffineTemplate stereo;
         if (stereo.set(left.data, left.step, left.cols, left.rows, {c.left, cv::Matx22d::eye()})) {
           ar = stereo.refine(right.data, right.step, right.cols, right.rows,
-                             {c.right, cv::Matx22d::eye()});
+                             {c.right, cv::Matx22d::eye()}, kDetectIterations, kDetectEpsilonPx);
         }
       }
       if (ar.converged && cv::norm(ar.warp.centre - c.right) < 1.5) {
@@ -423,6 +549,25 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
         c.ncc = ar.ncc;
         s.stereo_warp = ar.warp.a;
         refined = true;
+      }
+    }
+    // Left-right consistency: the right patch (nearest pixel) searched for in the left image
+    // over the reversed box; the peak, moved by the same sub-pixel remainder, must come back to
+    // the left point.
+    bool left_right = false;
+    {
+      const cv::Point pr0(static_cast<int>(std::lround(c.right[0])),
+                          static_cast<int>(std::lround(c.right[1])));
+      NccTemplate back;
+      if (pr0.x - kHalf >= 0 && pr0.y - kHalf >= 0 && pr0.x + kHalf < right.cols &&
+          pr0.y + kHalf < right.rows &&
+          back.set(right.ptr<uint8_t>(pr0.y - kHalf) + pr0.x - kHalf, right.step, kSide, kSide) &&
+          searchWindow(left, back, pr0.x - sx1, pr0.y - sy1, nx, ny, scores.data(), scratch_.data(),
+                       scratch_.size())) {
+        const Peak bp = findPeak(scores.data(), nx, ny);
+        const cv::Vec2d came_back(pr0.x - sx1 + bp.i + bp.sub.dx + (c.right[0] - pr0.x),
+                                  pr0.y - sy1 + bp.j + bp.sub.dy + (c.right[1] - pr0.y));
+        left_right = !bp.interior || cv::norm(came_back - c.left) > config_.max_left_right_px;
       }
     }
     const uint8_t* tl = nullptr;
@@ -438,25 +583,16 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     c.epipolar_px = rig_.epipolarDistances(c.left, c.right)[0];
     const Triangulation t = triangulate(rig_, c.left, c.right);
     c.point = t.point;
-    const auto reject = [&c](FeatureStatus st, Gate g) {
-      c.status = st;
-      c.gate = g;
-    };
-    if (!refined) {
-      reject(FeatureStatus::kLost, Gate::kNotConverged);
-    } else if (c.ncc < config_.min_ncc) {
-      reject(FeatureStatus::kOccluded, Gate::kNcc);
-    } else if (config_.refinement && c.ncc < config_.min_stereo_ncc) {
-      reject(FeatureStatus::kOccluded, Gate::kStereoNcc);
-    } else if (c.nmi < config_.min_nmi) {
-      reject(FeatureStatus::kOccluded, Gate::kNmi);
-    } else if (glint) {
-      reject(FeatureStatus::kOccluded, Gate::kGlint);
-    } else if (c.epipolar_px > config_.max_epipolar_px) {
-      reject(FeatureStatus::kOutlierEpipolar, Gate::kEpipolar);
-    } else if (!t.ok) {
-      reject(FeatureStatus::kOutlierTriangulation, Gate::kTriangulation);
-    }
+    check(!refined, FeatureStatus::kLost, Gate::kNotConverged);
+    check(c.ncc < config_.min_ncc, FeatureStatus::kOccluded, Gate::kNcc);
+    check(config_.refinement && c.ncc < config_.min_stereo_ncc, FeatureStatus::kOccluded,
+          Gate::kStereoNcc);
+    check(c.nmi < config_.min_nmi, FeatureStatus::kOccluded, Gate::kNmi);
+    check(glint, FeatureStatus::kOccluded, Gate::kGlint);
+    check(left_right, FeatureStatus::kOccluded, Gate::kLeftRight);
+    check(c.epipolar_px > config_.max_epipolar_px, FeatureStatus::kOutlierEpipolar,
+          Gate::kEpipolar);
+    check(!t.ok, FeatureStatus::kOutlierTriangulation, Gate::kTriangulation);
     candidates_.push_back(c);
     if (c.status != FeatureStatus::kOk) continue;
     // Frame-0 templates of both cameras for video matching.
@@ -467,12 +603,14 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
         !s.ncc[1].set(right.ptr<uint8_t>(pr.y - kHalf) + pr.x - kHalf, right.step, kSide, kSide)) {
       candidates_.back().status = FeatureStatus::kLost;
       candidates_.back().gate = Gate::kImageBorder;
+      candidates_.back().failed |= gateBit(Gate::kImageBorder);
       continue;
     }
     if (!s.shift[0].set(left.data, left.step, left.cols, left.rows, c.left) ||
         !s.shift[1].set(right.data, right.step, right.cols, right.rows, c.right)) {
       candidates_.back().status = FeatureStatus::kLost;
       candidates_.back().gate = Gate::kImageBorder;
+      candidates_.back().failed |= gateBit(Gate::kImageBorder);
       continue;
     }
     // The frame-0 patches' NMI bins, once: track() compares every match with them.
@@ -482,11 +620,13 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
         !s.nmi[0].set(t0, left.step, kSide, kSide) || !s.nmi[1].set(t1, right.step, kSide, kSide)) {
       candidates_.back().status = FeatureStatus::kLost;
       candidates_.back().gate = Gate::kImageBorder;
+      candidates_.back().failed |= gateBit(Gate::kImageBorder);
       continue;
     }
     Feature f;
     f.id = next_id_ + static_cast<int>(features_.size());
-    f.left = c.left;
+    f.left = f.judged_left = c.left;
+    f.judged_right = c.right;
     f.right = c.right;
     f.point = f.point0 = c.point;
     f.ncc = c.ncc;
@@ -494,6 +634,8 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     f.epipolar_px = c.epipolar_px;
     s.right_track = s.right0 = c.right;
     s.left0 = c.left;
+    s.epoch_left = c.left;
+    s.epoch_right = c.right;
     features_.push_back(f);
     states_.push_back(s);
     candidate_of_feature.push_back(candidates_.size() - 1);
@@ -503,16 +645,20 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
   // differs between the lenses): the median ratio of the nearest features. Shine that is not
   // yet a glint makes one view's patch brighter, differently per view, and moves the match by
   // a tenth of a pixel or more (0.1-0.2 mm of depth): such features are not tracked.
+  // Measured in this pair for the new features and the ok ones already there (the gains drift,
+  // so only ratios of one pair compare).
   std::vector<double> ratios;
   ratios.reserve(features_.size());
-  for (const Feature& f : features_) {
+  for (size_t i = 0; i < features_.size(); ++i) {
+    const Feature& f = features_[i];
     const int half = kHalf + config_.specular_margin_px;  // sheen beside the patch pulls too
     const double ml = regionMean(left, f.left, half), mr = regionMean(right, f.right, half);
-    ratios.push_back(ml > 0.0 && mr > 0.0 ? mr / ml : 0.0);
+    const bool use = i >= first_new || f.status == FeatureStatus::kOk;
+    ratios.push_back(use && ml > 0.0 && mr > 0.0 ? mr / ml : 0.0);
   }
   std::vector<std::pair<double, double>> near;  // (distance, ratio)
   std::vector<double> local;
-  for (size_t i = 0; i < features_.size(); ++i) {
+  for (size_t i = first_new; i < features_.size(); ++i) {
     near.clear();
     for (size_t j = 0; j < features_.size(); ++j) {
       if (j != i && ratios[j] > 0.0)
@@ -525,46 +671,62 @@ Result<int> StereoTracker::initialize(const cv::Mat& left, const cv::Mat& right,
     std::nth_element(local.begin(), local.begin() + static_cast<long>(k / 2), local.end());
     states_[i].view_gain = k > 0 ? local[k / 2] : ratios[i];
   }
-  size_t kept = 0;
-  for (size_t i = 0; i < features_.size(); ++i) {
+  size_t kept = first_new;
+  for (size_t i = first_new; i < features_.size(); ++i) {
     if (!(states_[i].view_gain > 0.0) ||
         std::abs(ratios[i] / states_[i].view_gain - 1.0) > config_.max_sheen) {
       candidates_[candidate_of_feature[i]].status = FeatureStatus::kOccluded;
       candidates_[candidate_of_feature[i]].gate = Gate::kSheen;
+      candidates_[candidate_of_feature[i]].failed |= gateBit(Gate::kSheen);
       continue;
     }
     features_[kept] = features_[i];
-    features_[kept].id = next_id_ + static_cast<int>(kept);
+    features_[kept].id = next_id_ + static_cast<int>(kept - first_new);
     states_[kept] = states_[i];
     candidate_of_feature[kept] = candidate_of_feature[i];
     ++kept;
   }
+  // Over the ceiling: the last matched (every cell's weakest) are dropped, their candidates too
+  // (never tracked, as if not matched).
+  std::vector<size_t> dropped;
+  for (size_t i = first_new + capacity; i < kept; ++i) dropped.push_back(candidate_of_feature[i]);
+  kept = std::min(kept, first_new + capacity);
   features_.resize(kept);
   states_.resize(kept);
+  // A new feature's epoch position: where it is, less its ok neighbours' motion since the
+  // epoch (the first features' own: their epoch is their detection).
+  for (size_t i = first_new; i < features_.size(); ++i) {
+    cv::Vec2d pl, pr;
+    states_[i].epoch_left = features_[i].left;  // predict() ranks neighbours from here
+    if (predict(i, pl, pr, first_new)) {
+      states_[i].epoch_left = features_[i].left - (pl - features_[i].left);
+      states_[i].epoch_right = states_[i].right_track - (pr - states_[i].right_track);
+    }
+  }
   residuals_.resize(std::max<size_t>(features_.size(), 1));
   surfaceGate();
   // Report the surface gate's verdicts on the candidates too.
-  for (size_t i = 0; i < features_.size(); ++i) {
-    candidates_[candidate_of_feature[i]].status = features_[i].status;
-    candidates_[candidate_of_feature[i]].gate = features_[i].gate;
+  for (size_t i = first_new; i < features_.size(); ++i) {
+    StereoCandidate& c = candidates_[candidate_of_feature[i]];
+    c.status = features_[i].status;
+    c.gate = features_[i].gate;
+    c.failed |= features_[i].failed;
   }
-  next_id_ += static_cast<int>(features_.size());
+  std::sort(dropped.begin(), dropped.end());
+  for (auto it = dropped.rbegin(); it != dropped.rend(); ++it)
+    candidates_.erase(candidates_.begin() + static_cast<long>(*it));
+  next_id_ += static_cast<int>(features_.size() - first_new);
   roi_ = roi;
   depth_tolerance_mm_ = depth_tolerance_mm;
   detected_ok_ = okCount();
+  retirable_ = 0;
   refresh_next_ = 0;
   tracked_ = false;
-  return detected_ok_;
-}
-
-Result<int> StereoTracker::redetect(const cv::Mat& left, const cv::Mat& right) {
-  if (depth_tolerance_mm_ <= 0.0) return fail("tracker: redetect() before initialize()");
-  return initialize(left, right, roi_, depth_tolerance_mm_);
+  return fill ? static_cast<int>(features_.size()) : detected_ok_;
 }
 
 bool StereoTracker::searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s,
-                                 cv::Vec2d& pos, double& ncc) noexcept {
-  const int radius = config_.video_search_px;
+                                 cv::Vec2d& pos, double& ncc, int radius) noexcept {
   const int side = 2 * radius + 1;
   const int cx = static_cast<int>(std::lround(last[0]));
   const int cy = static_cast<int>(std::lround(last[1]));
@@ -608,7 +770,7 @@ bool StereoTracker::searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& l
 }
 
 Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
-                                double& nmi) noexcept {
+                                double& nmi, int radius) noexcept {
   const cv::Vec2d last = at;
   cv::Vec2d pos = last;
   bool found = false;
@@ -617,15 +779,14 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
     // refine straight from the last position, and search with NCC only when that fails (a
     // jump, a re-acquisition after an occlusion, a poor match).
     const AffineResult ar = s.shift[cam].refine(img.data, img.step, img.cols, img.rows, last);
-    if (ar.converged && ar.ncc >= config_.min_ncc &&
-        cv::norm(ar.warp.centre - last) <= config_.video_search_px) {
+    if (ar.converged && ar.ncc >= config_.min_ncc && cv::norm(ar.warp.centre - last) <= radius) {
       pos = ar.warp.centre;
       ncc = ar.ncc;
       found = true;
     }
   }
   if (!found) {
-    if (!searchCamera(cam, img, last, s, pos, ncc)) return Gate::kNoPeak;
+    if (!searchCamera(cam, img, last, s, pos, ncc, radius)) return Gate::kNoPeak;
     if (config_.refinement) {
       const AffineResult ar = s.shift[cam].refine(img.data, img.step, img.cols, img.rows, pos);
       if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return Gate::kNotConverged;
@@ -643,62 +804,144 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
   return Gate::kNone;
 }
 
+bool StereoTracker::predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track,
+                            size_t among) const noexcept {
+  // The k nearest ok features at the epoch (k small: an insertion list on the stack).
+  constexpr int kMax = 16;
+  const int k = std::clamp(config_.reacquire_neighbours, 1, kMax);
+  std::array<double, kMax> dist{};
+  std::array<size_t, kMax> idx{};
+  int n = 0;
+  const cv::Vec2d at = states_[i].epoch_left;
+  const size_t limit = std::min(among, features_.size());
+  for (size_t j = 0; j < limit; ++j) {
+    if (j == i || features_[j].status != FeatureStatus::kOk) continue;
+    const cv::Vec2d d = states_[j].epoch_left - at;
+    const double d2 = d.dot(d);
+    if (n == k && d2 >= dist[static_cast<size_t>(n - 1)]) continue;
+    int m = n < k ? n++ : n - 1;
+    while (m > 0 && dist[static_cast<size_t>(m - 1)] > d2) {
+      dist[static_cast<size_t>(m)] = dist[static_cast<size_t>(m - 1)];
+      idx[static_cast<size_t>(m)] = idx[static_cast<size_t>(m - 1)];
+      --m;
+    }
+    dist[static_cast<size_t>(m)] = d2;
+    idx[static_cast<size_t>(m)] = j;
+  }
+  if (n == 0) return false;
+  cv::Vec2d dl(0, 0), dr(0, 0);
+  for (int m = 0; m < n; ++m) {
+    const size_t j = idx[static_cast<size_t>(m)];
+    dl += features_[j].left - states_[j].epoch_left;
+    dr += states_[j].right_track - states_[j].epoch_right;
+  }
+  left = states_[i].epoch_left + dl / n;
+  right_track = states_[i].epoch_right + dr / n;
+  return true;
+}
+
+void StereoTracker::trackOne(size_t i, const cv::Mat& left, const cv::Mat& right, int radius,
+                             bool reacquiring) noexcept {
+  Feature& f = features_[i];
+  State& s = states_[i];
+  const cv::Vec2d prev_left = f.left, prev_right = f.right, prev_track = s.right_track;
+  double ncc_l = 0, ncc_r = 0, nmi_l = 0, nmi_r = 0;
+  const Gate gate_l = trackCamera(0, left, f.left, s, ncc_l, nmi_l, radius);
+  // Still hidden in the left view: the right one need not be searched (it is not ok anyway).
+  const bool skip_right = reacquiring && (gate_l != Gate::kNone || ncc_l < config_.min_ncc);
+  const Gate gate_r =
+      skip_right ? gate_l : trackCamera(1, right, s.right_track, s, ncc_r, nmi_r, radius);
+  if (skip_right) {
+    ncc_r = ncc_l;
+    nmi_r = nmi_l;
+  }
+  f.right = s.right_track + s.stereo_offset;
+  f.ncc = std::min(ncc_l, ncc_r);
+  f.nmi = std::min(nmi_l, nmi_r);
+  f.failed = 0;
+  f.judged_left = f.left;
+  f.judged_right = f.right;
+  const auto keep_last = [&](FeatureStatus why, Gate gate) {
+    // An occluded or lost feature stays where it was last seen (or predicted).
+    f.left = prev_left;
+    f.right = prev_right;
+    s.right_track = prev_track;
+    f.status = why;
+    f.gate = gate;
+  };
+  const auto lost = [](Gate g) { return g != Gate::kNone && g != Gate::kGlint; };
+  if (lost(gate_l) || lost(gate_r)) {
+    if (lost(gate_l)) f.failed |= gateBit(gate_l);
+    if (lost(gate_r)) f.failed |= gateBit(gate_r);
+    keep_last(FeatureStatus::kLost, lost(gate_l) ? gate_l : gate_r);
+    return;
+  }
+  const auto dropped = [&](int cam, double ncc) {
+    return s.ncc_level[cam] > 0.0 && ncc < s.ncc_level[cam] - config_.max_ncc_drop;
+  };
+  // Every gate is evaluated (failed holds them all); the first in this order is reported.
+  FeatureStatus status = FeatureStatus::kOk;
+  Gate first = Gate::kNone;
+  const auto check = [&](bool fails, FeatureStatus st, Gate g) {
+    if (!fails) return;
+    f.failed |= gateBit(g);
+    if (first == Gate::kNone) {
+      status = st;
+      first = g;
+    }
+  };
+  check(f.ncc < config_.min_ncc, FeatureStatus::kOccluded, Gate::kNcc);
+  check(gate_l == Gate::kGlint || gate_r == Gate::kGlint, FeatureStatus::kOccluded, Gate::kGlint);
+  check(f.nmi < config_.min_nmi, FeatureStatus::kOccluded, Gate::kNmi);
+  check(dropped(0, ncc_l) || dropped(1, ncc_r), FeatureStatus::kOccluded, Gate::kNccDrop);
+  const double epipolar = rig_.epipolarDistances(f.left, f.right)[0];
+  check(epipolar > config_.max_epipolar_px, FeatureStatus::kOutlierEpipolar, Gate::kEpipolar);
+  const Triangulation t = triangulate(rig_, f.left, f.right);
+  check(!t.ok, FeatureStatus::kOutlierTriangulation, Gate::kTriangulation);
+  if (first != Gate::kNone) {
+    keep_last(status, first);
+    return;
+  }
+  f.epipolar_px = epipolar;
+  f.point = t.point;
+  f.status = FeatureStatus::kOk;
+  f.gate = Gate::kNone;
+  // The NCC level follows slow changes (illumination, deformation) over ~20 frames.
+  for (int cam = 0; cam < 2; ++cam) {
+    const double ncc = cam == 0 ? ncc_l : ncc_r;
+    s.ncc_level[cam] = s.ncc_level[cam] > 0.0 ? 0.95 * s.ncc_level[cam] + 0.05 * ncc : ncc;
+  }
+}
+
 void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
+  for (size_t i = 0; i < features_.size(); ++i)
+    states_[i].seen = features_[i].status == FeatureStatus::kOk;
+  // The features seen in the last pair, from where they were.
   for (size_t i = 0; i < features_.size(); ++i) {
-    Feature& f = features_[i];
-    State& s = states_[i];
-    const cv::Vec2d prev_left = f.left, prev_right = f.right, prev_track = s.right_track;
-    double ncc_l = 0, ncc_r = 0, nmi_l = 0, nmi_r = 0;
-    const Gate gate_l = trackCamera(0, left, f.left, s, ncc_l, nmi_l);
-    const Gate gate_r = trackCamera(1, right, s.right_track, s, ncc_r, nmi_r);
-    f.right = s.right_track + s.stereo_offset;
-    f.ncc = std::min(ncc_l, ncc_r);
-    f.nmi = std::min(nmi_l, nmi_r);
-    const auto keep_last = [&](FeatureStatus why, Gate gate) {
-      // An occluded or lost feature stays where it was last seen, so it is found again there.
-      f.left = prev_left;
-      f.right = prev_right;
-      s.right_track = prev_track;
-      f.status = why;
-      f.gate = gate;
-    };
-    const auto lost = [](Gate g) { return g != Gate::kNone && g != Gate::kGlint; };
-    if (lost(gate_l) || lost(gate_r)) {
-      keep_last(FeatureStatus::kLost, lost(gate_l) ? gate_l : gate_r);
-      continue;
+    if (states_[i].seen) trackOne(i, left, right, config_.video_search_px, false);
+  }
+  // Re-acquisition: the hidden ones from where their neighbours' motion puts them now, with
+  // their frame-0 templates and the same gates (their NCC level from before they were hidden
+  // included), so a feature comes back under its id.
+  for (size_t i = 0; i < features_.size(); ++i) {
+    if (states_[i].seen) continue;
+    cv::Vec2d l, r;
+    int radius = config_.video_search_px;
+    if (predict(i, l, r, features_.size())) {
+      features_[i].left = l;
+      states_[i].right_track = r;
+      features_[i].right = r + states_[i].stereo_offset;
+      radius = std::min(radius, config_.reacquire_search_px);
     }
-    const auto dropped = [&](int cam, double ncc) {
-      return s.ncc_level[cam] > 0.0 && ncc < s.ncc_level[cam] - config_.max_ncc_drop;
-    };
-    const Gate occluded = f.ncc < config_.min_ncc                            ? Gate::kNcc
-                          : gate_l == Gate::kGlint || gate_r == Gate::kGlint ? Gate::kGlint
-                          : f.nmi < config_.min_nmi                          ? Gate::kNmi
-                          : dropped(0, ncc_l) || dropped(1, ncc_r)           ? Gate::kNccDrop
-                                                                             : Gate::kNone;
-    if (occluded != Gate::kNone) {
-      keep_last(FeatureStatus::kOccluded, occluded);
-      continue;
-    }
-    f.epipolar_px = rig_.epipolarDistances(f.left, f.right)[0];
-    if (f.epipolar_px > config_.max_epipolar_px) {
-      keep_last(FeatureStatus::kOutlierEpipolar, Gate::kEpipolar);
-      continue;
-    }
-    const Triangulation t = triangulate(rig_, f.left, f.right);
-    if (!t.ok) {
-      keep_last(FeatureStatus::kOutlierTriangulation, Gate::kTriangulation);
-      continue;
-    }
-    f.point = t.point;
-    f.status = FeatureStatus::kOk;
-    f.gate = Gate::kNone;
-    // The NCC level follows slow changes (illumination, deformation) over ~20 frames.
-    for (int cam = 0; cam < 2; ++cam) {
-      const double ncc = cam == 0 ? ncc_l : ncc_r;
-      s.ncc_level[cam] = s.ncc_level[cam] > 0.0 ? 0.95 * s.ncc_level[cam] + 0.05 * ncc : ncc;
-    }
+    trackOne(i, left, right, radius, true);
   }
   surfaceGate();
+  retirable_ = 0;
+  for (size_t i = 0; i < features_.size(); ++i) {
+    State& s = states_[i];
+    s.not_ok_pairs = features_[i].status == FeatureStatus::kOk ? 0 : s.not_ok_pairs + 1;
+    if (s.not_ok_pairs > config_.retire_after_pairs) ++retirable_;
+  }
   tracked_ = true;
 }
 
@@ -709,14 +952,34 @@ int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noex
       left.size() != right.size()) {
     return 0;
   }
-  int taken = 0;
-  const auto budget = std::min(n, static_cast<size_t>(config_.stereo_refresh));
+  // This call's features (ok ones, round robin) and the gain ratio of the two views now: the
+  // cameras' gains drift independently, so each feature's shading ratio from its detection
+  // (view_gain) is scaled by the median drift of this pair before the sheen gate compares.
+  const int half = kHalf + config_.specular_margin_px;
+  const auto budget =
+      std::min({n, static_cast<size_t>(config_.stereo_refresh), refresh_index_.size()});
+  size_t m = 0;
   for (size_t visited = 0; visited < budget; ++visited) {
     const size_t i = refresh_next_ % n;
     refresh_next_ = (i + 1) % n;
+    if (features_[i].status != FeatureStatus::kOk) continue;
+    const double ml = regionMean(left, features_[i].left, half);
+    const double mr = regionMean(right, features_[i].right, half);
+    if (!(ml > 0.0) || !(mr > 0.0)) continue;
+    refresh_index_[m] = i;
+    refresh_ratio_[m] = mr / ml / states_[i].view_gain;
+    refresh_sorted_[m] = refresh_ratio_[m];
+    ++m;
+  }
+  if (m == 0) return 0;
+  std::nth_element(refresh_sorted_.begin(), refresh_sorted_.begin() + static_cast<long>(m / 2),
+                   refresh_sorted_.begin() + static_cast<long>(m));
+  const double drift = refresh_sorted_[m / 2];
+  int taken = 0;
+  for (size_t k = 0; k < m; ++k) {
+    const size_t i = refresh_index_[k];
     Feature& f = features_[i];
     State& s = states_[i];
-    if (f.status != FeatureStatus::kOk) continue;
     // The same refinement as the first pair's match, from where the feature is now.
     AffineResult ar;
     if (config_.detector == Detector::kDarkBlobs) {
@@ -733,9 +996,8 @@ int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noex
         ar.ncc < std::max(config_.min_ncc, config_.min_stereo_ncc)) {
       continue;
     }
-    const int half = kHalf + config_.specular_margin_px;
     const double ml = regionMean(left, f.left, half), mr = regionMean(right, ar.warp.centre, half);
-    if (!(ml > 0.0) || std::abs(mr / ml / s.view_gain - 1.0) > config_.max_sheen ||
+    if (!(ml > 0.0) || std::abs(mr / ml / s.view_gain / drift - 1.0) > config_.max_sheen ||
         neighbourhoodMax(right, ar.warp.centre, config_.specular_margin_px) >=
             config_.specular_threshold ||
         neighbourhoodMax(left, f.left, config_.specular_margin_px) >= config_.specular_threshold) {
@@ -790,6 +1052,7 @@ void StereoTracker::surfaceGate() noexcept {
     if (f.status == FeatureStatus::kOk && residual(f) > limit) {
       f.status = FeatureStatus::kOutlierSurface;
       f.gate = Gate::kSurface;
+      f.failed |= gateBit(Gate::kSurface);
     }
   }
 }

@@ -9,11 +9,16 @@
 namespace pulsetrack::sim {
 
 struct CameraEffectsSpec {
-  double blur_sigma_px = 0.7;   // defocus, Gaussian
-  double noise_sigma = 2.0;     // grey levels
-  double vignetting = 0.25;     // relative fall-off at the image corner
-  double gain_amplitude = 0.0;  // relative, sinusoidal
+  double blur_sigma_px = 0.7;  // defocus, Gaussian
+  double noise_sigma = 2.0;    // grey levels
+  double vignetting = 0.25;    // relative fall-off at the image corner
+  // Where the fall-off is centred, px from the image centre: lenses differ (decentred elements),
+  // so the two views' shading ratio varies over the image.
+  cv::Vec2d vignetting_centre_px{0.0, 0.0};
+  double gain = 1.0;            // the camera's gain (the two cameras' differ: unequal gains)
+  double gain_amplitude = 0.0;  // relative, sinusoidal drift around `gain`
   double gain_period_s = 30.0;
+  double gain_phase_deg = 0.0;    // independent drift per camera
   double drop_probability = 0.0;  // per frame
 };
 

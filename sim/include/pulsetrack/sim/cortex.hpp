@@ -60,6 +60,9 @@ struct Instrument {
   cv::Vec2d to_mm{-5.0, 0.0};
   double length_mm = 120.0;  // the rod runs from the tip away along -x of {S}
   double albedo = 0.45;
+  // The fraction of the duration the tip rests at to_mm (the rest of it: coming and going,
+  // sinusoidal). 0: it turns round at to_mm (a crossing).
+  double hold_fraction = 0.0;
 };
 
 // A soft shadow band (a hand between lamp and field) sweeping over the field.

@@ -27,7 +27,8 @@ struct SceneSpec {
   int frames = 0;  // 0: the scene's own count (cortex: 10 s; plate: its whole protocol)
   unsigned seed = 1;
   int supersample = 2;
-  CameraEffectsSpec camera;
+  CameraEffectsSpec camera;  // both cameras ([camera]), or the left one when camera_right is set
+  std::optional<CameraEffectsSpec> camera_right;  // [camera] with [camera.right]'s keys over it
   CortexSpec cortex;
   PlateSpec plate;
   std::string source_text;  // the file as read, copied into recordings

@@ -3,9 +3,10 @@
 //
 // initialize() (may allocate; runs at start and on re-detection):
 //   left ROI -> specular mask (threshold, dilated by the template size) -> "darker than its
-//   neighbourhood" mask (vessels) -> Harris corners on a grid of sub-regions (k per cell, a
-//   ceiling, the sensitivity lowered until the ceiling is met) -> stereo match in the search
-//   box built from the ROI pair and the depth tolerance (NCC, quadratic peak, then an affine
+//   neighbourhood" mask (vessels) -> Harris corners, taken every grid cell's strongest first,
+//   then every cell's second, ... until the ceiling of features that pass the gates is met
+//   (the paper lowers the sensitivity until the ceiling of corners is met) -> stereo match in the
+//   search box built from the ROI pair and the depth tolerance (NCC, quadratic peak, then an affine
 //   refinement for the two views' different foreshortening) -> gates (incl. sheen) ->
 //   triangulation.
 // track() (per frame: no allocation, no lock, no exception):
@@ -56,8 +57,14 @@ enum class Gate : uint8_t {
   kSurface,        // farther from the fitted parabola than max_surface_mm / the MAD limit
   kTriangulation,  // the rays do not meet in front of the cameras
   kStereoNcc,      // the left-right match's NCC below min_stereo_ncc
+  kLeftRight,      // the right patch, matched back in the left image, lands farther than
+                   // max_left_right_px from the left point (a depth edge, a repeated pattern)
 };
 const char* toString(Gate g) noexcept;
+// A set of gates (bit 1 << value): every gate a match failed, not only the first.
+constexpr uint16_t gateBit(Gate g) noexcept {
+  return static_cast<uint16_t>(1U << static_cast<unsigned>(g));
+}
 // "ok", or the status and the gate: "occluded:glint".
 std::string statusText(FeatureStatus s, Gate g);
 
@@ -73,18 +80,21 @@ struct TrackerConfig {
   int max_features = 100;
   int grid_cols = 5;
   int grid_rows = 5;
-  int per_cell = 4;
   double harris_k = 0.04;
-  double sensitivity_start = 0.2;  // fraction of the strongest Harris response
-  double sensitivity_min = 1e-3;
+  double sensitivity_min = 1e-3;  // weakest corner taken, fraction of the strongest response
   int min_distance_px = 12;
-  double min_isotropy = 0.25;    // smaller / larger eigenvalue of the template's structure tensor
-  int specular_threshold = 215;  // grey level above which a pixel is (part of) a glint
-  int specular_dilate_px = 13;   // the template's half size plus the sheen around a glint
-  int specular_margin_px = 6;    // the same margin around a match, in either camera
-  int dark_window_px = 21;       // "darker than the neighbourhood" window
-  int dark_delta = 2;            // grey levels below the local mean
-  int video_search_px = 8;       // +- window around the last position
+  double min_isotropy = 0.25;  // smaller / larger eigenvalue of the template's structure tensor
+  // Grey level from which a pixel is (part of) a glint. Chosen by gate_eval: at 215 the gate
+  // rejected 57 % of the right matches of cortex-hard's detection (bright tissue under a 1.3
+  // gain) and 43 % on the photographs (white surfaces), catching 3 % of the wrong ones; at 250
+  // (a glint's core saturates) it rejects 0-16 % of the right ones, and the sheen around a
+  // glint is left to the sheen, NCC-drop and stereo NCC gates, which measure it.
+  int specular_threshold = 250;
+  int specular_dilate_px = 13;  // the template's half size plus the sheen around a glint
+  int specular_margin_px = 6;   // the same margin around a match, in either camera
+  int dark_window_px = 21;      // "darker than the neighbourhood" window
+  int dark_delta = 2;           // grey levels below the local mean
+  int video_search_px = 8;      // +- window around the last position
   double min_ncc = 0.75;
   // A feature's video NCC is steady while it is seen (0.95-0.99 on tissue); a drop below its
   // own running level by more than this is an occlusion starting (an instrument's edge), even
@@ -97,6 +107,9 @@ struct TrackerConfig {
   // most this fraction beyond the cameras' local gain ratio: more is view-dependent shine
   // (sheen), which moves the stereo match.
   double max_sheen = 0.02;
+  // Left-right consistency at detection: the right patch matched back in the left image (the
+  // same search box, reversed) must land within this of the left point.
+  double max_left_right_px = 1.0;
   double min_nmi = 0.25;
   double max_epipolar_px = 1.0;
   double max_surface_mm = 2.0;      // distance to the fitted parabola
@@ -108,6 +121,25 @@ struct TrackerConfig {
   // Re-detection is due when fewer than this fraction of the features found at the last
   // detection are ok (needsRedetection(); the caller runs redetect() off the per-frame path).
   double redetect_fraction = 0.5;
+  // Re-detection fills: it keeps every feature (ok or hidden, under its id) and adds new ones
+  // only farther than this from all of them, up to max_features. A feature not ok for longer
+  // than retire_after_pairs is retired at the next re-detection (which it then triggers), so
+  // that its region can be filled.
+  int fill_distance_px = 30;
+  // Detection matches as many corners as the ceiling, and more while fewer than this fraction
+  // of the ceiling pass the gates (cortex-hard: 41 of 100 without it, 100 with it).
+  double min_fill = 0.8;
+  int retire_after_pairs = 300;
+  // A feature that is not ok is searched for again from where its neighbours' motion puts it:
+  // the mean image motion of its this many nearest ok features (in the reference pair), added
+  // to its own reference position.
+  int reacquire_neighbours = 6;
+  // ... and searched within this many px of there (the prediction is good to a pixel: 0.3 px
+  // RMS on cortex-hard; a smaller window also keeps 30 hidden features cheap).
+  int reacquire_search_px = 3;
+  // Evaluation only (`pulsetrack gates`): the Harris maxima the specular mask removed are
+  // matched too and reported among candidates() with the glint gate; never tracked.
+  bool report_masked = false;
   // Stereo refresh (refreshStereo()): features whose stereo match is measured again per call.
   // The first frame's stereo match carries that pair's sensor noise for good (0.1-0.2 px of
   // disparity on weak texture: 0.06-0.12 mm of depth); matching again in later pairs, whose noise
@@ -127,7 +159,11 @@ struct Feature {
   int id = 0;
   FeatureStatus status = FeatureStatus::kOk;
   Gate gate = Gate::kNone;  // why, when not ok
-  cv::Vec2d left;           // current pixel positions
+  uint16_t failed = 0;      // gateBit() of every gate this pair's match failed
+  // The match the gates judged in this pair (left, right as reported): for a feature that is
+  // not ok, left/right stay where it was last seen or predicted.
+  cv::Vec2d judged_left, judged_right;
+  cv::Vec2d left;  // current pixel positions
   cv::Vec2d right;
   cv::Vec3d point;   // current 3D position in {C}, mm
   cv::Vec3d point0;  // at the first frame
@@ -143,6 +179,7 @@ struct StereoCandidate {
   cv::Vec3d point;
   FeatureStatus status = FeatureStatus::kOk;
   Gate gate = Gate::kNone;
+  uint16_t failed = 0;  // gateBit() of every gate it failed (the first is `gate`)
 };
 
 class StereoTracker {
@@ -153,11 +190,15 @@ class StereoTracker {
   // an ROI outside the image or images that are not 8-bit grey of the rig's size.
   Result<int> initialize(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
                          double depth_tolerance_mm);
-  // Detects again in the current pair with the last ROI and depth tolerance. The new features
-  // take new ids (never reused) and their reference position (point0) is where they are now.
+  // Detects again in the current pair with the last ROI and depth tolerance, filling: the
+  // features there are keep their ids (hidden ones too, they are searched for every pair); those
+  // not ok for more than retire_after_pairs are retired; new features go only where none are
+  // (fill_distance_px), take new ids (never reused), and their reference position (point0) is
+  // where they are now. Returns how many features the tracker has (ok or hidden).
   Result<int> redetect(const cv::Mat& left, const cv::Mat& right);
   [[nodiscard]] bool needsRedetection() const noexcept {
-    return detected_ok_ > 0 && okCount() < config_.redetect_fraction * detected_ok_;
+    return (detected_ok_ > 0 && okCount() < config_.redetect_fraction * detected_ok_) ||
+           retirable_ > 0;
   }
   // The candidates of the last initialize(), rejected ones included.
   [[nodiscard]] const std::vector<StereoCandidate>& candidates() const { return candidates_; }
@@ -191,16 +232,33 @@ class StereoTracker {
     int stereo_samples = 1;                        // the first pair's match counts as one
     cv::Matx22d stereo_warp = cv::Matx22d::eye();  // right offset per left offset (affine)
     double view_gain = 1.0;  // right / left brightness here: the nearest features' median
+    // Where the feature would have been in the first detection's pair (its own position then,
+    // or for a later one, its position less its neighbours' motion since): the common epoch
+    // the neighbours' motion is measured from.
+    cv::Vec2d epoch_left, epoch_right;
+    bool seen = true;      // ok in the last pair: tracked from there; else predicted
+    int not_ok_pairs = 0;  // pairs since it was last ok
   };
+  // Detection: fresh (initialize) or filling around the features there are (redetect).
+  Result<int> detect(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
+                     double depth_tolerance_mm, bool fill);
+  // Where feature i should be now from its nearest ok features (among the first `among`) and
+  // their motion since the epoch; false when none is ok.
+  bool predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among) const noexcept;
+  // `radius`: the search window's half size (smaller when a hidden feature's position is
+  // predicted); `reacquiring`: the right camera is searched only when the left found it.
+  void trackOne(size_t i, const cv::Mat& left, const cv::Mat& right, int radius,
+                bool reacquiring) noexcept;
   bool searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s, cv::Vec2d& pos,
-                    double& ncc) noexcept;
+                    double& ncc, int radius) noexcept;
   // Matches camera `cam`'s frame-0 template near `at` and moves `at` to the match. Returns the
   // gate that failed (kNone: found; kGlint: found, but a glint is on it).
-  Gate trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
-                   double& nmi) noexcept;
+  Gate trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc, double& nmi,
+                   int radius) noexcept;
   void surfaceGate() noexcept;
   // Candidate positions in ROI coordinates (sub-pixel for blobs).
-  [[nodiscard]] std::vector<cv::Point2d> detectHarris(const cv::Mat& img) const;
+  [[nodiscard]] std::vector<cv::Point2d> detectHarris(const cv::Mat& img,
+                                                      std::vector<cv::Point2d>* masked) const;
   [[nodiscard]] std::vector<cv::Point2d> detectDarkBlobs(const cv::Mat& img) const;
 
   StereoRig rig_;
@@ -208,9 +266,13 @@ class StereoTracker {
   std::vector<Feature> features_;
   std::vector<State> states_;
   std::vector<StereoCandidate> candidates_;
-  std::vector<float> scores_;      // sized once: (2R+1)^2
-  std::vector<uint8_t> scratch_;   // a padded copy of a window near the image border
-  std::vector<double> residuals_;  // surface gate, sized to max_features
+  std::vector<float> scores_;          // sized once: (2R+1)^2
+  std::vector<uint8_t> scratch_;       // a padded copy of a window near the image border
+  std::vector<double> residuals_;      // surface gate, sized to max_features
+  std::vector<double> refresh_ratio_;  // refreshStereo()'s gain ratios, sized once
+  std::vector<double> refresh_sorted_;
+  std::vector<size_t> refresh_index_;
+  int retirable_ = 0;              // features past retire_after_pairs
   AffineTemplate refresh_affine_;  // refreshStereo()'s scratch templates
   ShiftTemplate refresh_shift_;
   size_t refresh_next_ = 0;
