@@ -13,7 +13,7 @@
 
 using namespace pulsetrack;
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App app{
       "Measure each tracker gate's false-reject and false-accept rates against ground truth: "
       "photographs with true disparity and a simulated scene"};
@@ -123,4 +123,7 @@ int main(int argc, char** argv) {
       100.0 * run->cardiac_error, run->ms_per_pair_tracking, run->mean_ok, config.max_features,
       run->ms_per_pair_refresh);
   return 0;
+} catch (const std::exception& e) {
+  std::fprintf(stderr, "gate_eval: internal error: %s\n", e.what());
+  return 1;
 }

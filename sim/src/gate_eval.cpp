@@ -336,8 +336,7 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
           continue;
         }
         const cv::Vec3d p = scene->position(uv[0], uv[1], t);
-        const bool good =
-            visible(p) && cv::norm(rig.projectRight(p) - c.right) <= options.right_px;
+        const bool good = visible(p) && cv::norm(rig.projectRight(p) - c.right) <= options.right_px;
         right_match.back() = good;
         run.detection.add(c.failed, c.status == FeatureStatus::kOk, good, false);
       }
@@ -351,8 +350,9 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
           const vision::StereoCandidate& c = cands[k];
           const int gx = std::clamp(int((c.left[0] - roi.x) * 5 / roi.width), 0, 4);
           const int gy = std::clamp(int((c.left[1] - roi.y) * 5 / roi.height), 0, 4);
-          if (right_match[k]) ++any[static_cast<size_t>(gy * 5 + gx)];
-          if (c.status == FeatureStatus::kOk) ++okc[static_cast<size_t>(gy * 5 + gx)];
+          const auto cell = static_cast<size_t>(gy) * 5 + static_cast<size_t>(gx);
+          if (right_match[k]) ++any[cell];
+          if (c.status == FeatureStatus::kOk) ++okc[cell];
         }
         for (size_t k = 0; k < 25; ++k) {
           if (any[k] == 0) continue;

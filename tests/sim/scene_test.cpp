@@ -109,14 +109,15 @@ TEST(SceneFile, TheRightCameraCanDiffer) {
   ASSERT_TRUE(s) << s.error().message;
   EXPECT_DOUBLE_EQ(s->camera.gain, 1.0);
   ASSERT_TRUE(s->camera_right.has_value());
-  EXPECT_DOUBLE_EQ(s->camera_right->gain, 0.8);
-  EXPECT_DOUBLE_EQ(s->camera_right->noise_sigma, 3.0);     // inherited
-  EXPECT_DOUBLE_EQ(s->camera_right->gain_amplitude, 0.3);  // inherited
-  EXPECT_DOUBLE_EQ(s->camera_right->gain_phase_deg, 120.0);
-  EXPECT_DOUBLE_EQ(s->camera_right->vignetting_centre_px[0], 120.0);
+  const CameraEffectsSpec right_spec = s->camera_right.value_or(CameraEffectsSpec{});
+  EXPECT_DOUBLE_EQ(right_spec.gain, 0.8);
+  EXPECT_DOUBLE_EQ(right_spec.noise_sigma, 3.0);     // inherited
+  EXPECT_DOUBLE_EQ(right_spec.gain_amplitude, 0.3);  // inherited
+  EXPECT_DOUBLE_EQ(right_spec.gain_phase_deg, 120.0);
+  EXPECT_DOUBLE_EQ(right_spec.vignetting_centre_px[0], 120.0);
   EXPECT_DOUBLE_EQ(s->cortex.instrument.hold_fraction, 0.7);
   // The gains as the cameras apply them: 20 % apart at t = 0 (phase 0 and 120 deg).
-  CameraEffects left(s->camera, {64, 48}, 1), right(*s->camera_right, {64, 48}, 2);
+  CameraEffects left(s->camera, {64, 48}, 1), right(right_spec, {64, 48}, 2);
   EXPECT_NEAR(left.gain(0.0), 1.0, 1e-12);
   EXPECT_NEAR(right.gain(0.0), 0.8 * (1.0 + 0.3 * std::sin(120.0 * CV_PI / 180.0)), 1e-12);
   auto plain = parseScene(kHead, "/x/scene.toml");

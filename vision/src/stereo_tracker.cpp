@@ -412,14 +412,16 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
       const cv::Vec2d p = f.left - cv::Vec2d(roi.left.x, roi.left.y);
       const int cx = std::clamp(static_cast<int>(p[0]) * cols / img.cols, 0, cols - 1);
       const int cy = std::clamp(static_cast<int>(p[1]) * rows / img.rows, 0, rows - 1);
-      ++per_cell[static_cast<size_t>(cy * cols + cx)];
+      ++per_cell[static_cast<size_t>(cy) * static_cast<size_t>(cols) + static_cast<size_t>(cx)];
     }
     std::vector<std::pair<int, cv::Point2d>> ranked;  // (rank in its cell, point)
     ranked.reserve(chosen.size());
     for (const cv::Point2d& p : chosen) {
       const int cx = std::clamp(static_cast<int>(p.x) * cols / img.cols, 0, cols - 1);
       const int cy = std::clamp(static_cast<int>(p.y) * rows / img.rows, 0, rows - 1);
-      ranked.emplace_back(per_cell[static_cast<size_t>(cy * cols + cx)]++, p);
+      ranked.emplace_back(
+          per_cell[static_cast<size_t>(cy) * static_cast<size_t>(cols) + static_cast<size_t>(cx)]++,
+          p);
     }
     std::stable_sort(ranked.begin(), ranked.end(),
                      [](const auto& a, const auto& b) { return a.first < b.first; });
