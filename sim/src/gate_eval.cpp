@@ -4,7 +4,6 @@
 
 #include <chrono>
 #include <cmath>
-#include <cstdlib>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <set>
@@ -139,16 +138,17 @@ float truthAt(const PhotoPair& p, const cv::Vec2d& left) {
   return p.disparity.at<float>(y, x);
 }
 
-// Row search: the best TM_CCOEFF_NORMED position of `templ` in `strip`, with a quadratic peak.
-bool rowPeak(const cv::Mat& strip, const cv::Mat& templ, double& x, double& score) {
-  if (strip.cols < templ.cols || strip.rows != templ.rows) return false;
+// Row search: the x in [x0, x1] where `templ` (side 2 half + 1) best matches `img`'s row y
+// (TM_CCOEFF_NORMED), with a quadratic peak; false when the range is empty.
+bool rowPeak(const cv::Mat& img, const cv::Mat& templ, int y, int x0, int x1, double& x) {
+  const int half = templ.cols / 2;
+  if (x1 < x0) return false;
   cv::Mat res;
-  cv::matchTemplate(strip, templ, res, cv::TM_CCOEFF_NORMED);
+  cv::matchTemplate(img(cv::Rect(x0 - half, y - half, x1 - x0 + templ.cols, templ.rows)), templ,
+                    res, cv::TM_CCOEFF_NORMED);
   cv::Point at;
-  double maxv = 0;
-  cv::minMaxLoc(res, nullptr, &maxv, nullptr, &at);
-  score = maxv;
-  x = at.x;
+  cv::minMaxLoc(res, nullptr, nullptr, nullptr, &at);
+  x = x0 + at.x;
   if (at.x > 0 && at.x < res.cols - 1) {
     const double a = res.at<float>(0, at.x - 1), b = res.at<float>(0, at.x),
                  c = res.at<float>(0, at.x + 1);
@@ -174,26 +174,19 @@ PlainMatcherResult plainMatcher(const PhotoPair& p, const cv::Rect& roi, int dmi
     if (y - kHalf < 0 || y + kHalf >= p.left.rows || x - kHalf < 0 || x + kHalf >= p.left.cols)
       continue;
     const cv::Mat templ = p.left(cv::Rect(x - kHalf, y - kHalf, 2 * kHalf + 1, 2 * kHalf + 1));
-    // Right x in [x - dmax, x - dmin].
-    const int x0 = std::max(kHalf, x - dmax), x1 = std::min(p.right.cols - 1 - kHalf, x - dmin);
-    if (x1 < x0) continue;
-    double xr = 0, score = 0;
-    if (!rowPeak(p.right(cv::Rect(x0 - kHalf, y - kHalf, x1 - x0 + 2 * kHalf + 1, 2 * kHalf + 1)),
-                 templ, xr, score)) {
+    // Right x in [x - dmax, x - dmin]; then the left-right check: the right patch back along the
+    // left row.
+    double xr = 0, xl = 0;
+    if (!rowPeak(p.right, templ, y, std::max(kHalf, x - dmax),
+                 std::min(p.right.cols - 1 - kHalf, x - dmin), xr)) {
       continue;
     }
-    xr += x0;
-    // Left-right check: the right patch back along the left row.
     const int xri = static_cast<int>(std::lround(xr));
     const cv::Mat back = p.right(cv::Rect(xri - kHalf, y - kHalf, 2 * kHalf + 1, 2 * kHalf + 1));
-    const int b0 = std::max(kHalf, xri + dmin), b1 = std::min(p.left.cols - 1 - kHalf, xri + dmax);
-    if (b1 < b0) continue;
-    double xl = 0, score_back = 0;
-    if (!rowPeak(p.left(cv::Rect(b0 - kHalf, y - kHalf, b1 - b0 + 2 * kHalf + 1, 2 * kHalf + 1)),
-                 back, xl, score_back)) {
+    if (!rowPeak(p.left, back, y, std::max(kHalf, xri + dmin),
+                 std::min(p.left.cols - 1 - kHalf, xri + dmax), xl)) {
       continue;
     }
-    xl += b0;
     if (std::abs(xl - x) > 1.0) continue;
     ++out.accepted;
     const float truth = truthAt(p, {double(x), double(y)});
@@ -220,7 +213,7 @@ vision::Result<PhotoEvaluation> evaluatePhotoPair(const PhotoPair& p,
                           p.left.rows - 2 * margin);
   vision::Roi roi{left_roi, left_roi - cv::Point(s, 0)};
   vision::TrackerConfig c = config;
-  c.report_masked = true;
+  c.evaluate_gates = true;
   vision::StereoTracker tracker(rig, c);
   auto ok = tracker.initialize(p.left, p.right, roi, tol);
   if (!ok) return std::unexpected(ok.error());
@@ -237,11 +230,6 @@ vision::Result<PhotoEvaluation> evaluatePhotoPair(const PhotoPair& p,
     const bool good = std::abs((cand.left[0] - cand.right[0]) - truth) <= 1.0 &&
                       std::abs(cand.left[1] - cand.right[1]) <= 1.0;
     e.table.add(cand.failed, accepted, good, false);
-    if (accepted && !good && std::getenv("PULSETRACK_GATE_DEBUG") != nullptr) {
-      fmt::print(
-          stderr, "wrong: left {:.1f},{:.1f} disparity {:.2f} truth {:.2f} ncc {:.3f} nmi {:.3f}\n",
-          cand.left[0], cand.left[1], cand.left[0] - cand.right[0], truth, cand.ncc, cand.nmi);
-    }
     if (accepted) {
       ++e.accepted_judged;
       if (good) ++e.accepted_good;
@@ -259,7 +247,7 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
   const vision::StereoRig& rig = sim.rig();
   vision::SessionConfig config;
   config.tracker = options.tracker;
-  config.tracker.report_masked = true;
+  config.tracker.evaluate_gates = true;
   // The ROI: the bounding boxes of a circle of roi_radius_mm around the patch's centre.
   std::vector<cv::Point2f> pl, pr;
   for (int k = 0; k < 36; ++k) {
@@ -382,26 +370,12 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
                           cv::norm(rig.projectLeft(p) - f.judged_left) <= options.right_px &&
                           cv::norm(rig.projectRight(p) - f.judged_right) <= options.right_px;
         run.tracking.add(f.failed, accepted, good, true);
-        if (accepted && !good && std::getenv("PULSETRACK_GATE_DEBUG") != nullptr) {
-          fmt::print(
-              stderr,
-              "wrong t {:.1f} id {} seen-state ncc {:.3f} nmi {:.3f} dl {:.2f} dr {:.2f} vis {}\n",
-              t, f.id, f.ncc, f.nmi, cv::norm(rig.projectLeft(p) - f.judged_left),
-              cv::norm(rig.projectRight(p) - f.judged_right), visible(p));
-        }
       }
       if (!accepted) continue;
       const double e = cv::norm(f.point - p);
       err3.push_back(e);
       run.max_3d_mm = std::max(run.max_3d_mm, e);
       if (e > 0.5) ++run.above_half_mm;
-      if (e > 0.2 && std::getenv("PULSETRACK_GATE_DEBUG") != nullptr) {
-        const cv::Vec3d ev = f.point - p;
-        fmt::print(
-            stderr,
-            "err t {:.1f} id {} e {:.3f} ({:.3f} {:.3f} {:.3f}) ncc {:.3f} left {:.1f},{:.1f}\n", t,
-            f.id, e, ev[0], ev[1], ev[2], f.ncc, f.left[0], f.left[1]);
-      }
       true_d[f.id] = p - scene->position(tr.uv[0], tr.uv[1], tr.t_ref);
     }
     if (i == 0 || run.pairs == 0) run.first_ok = ok;

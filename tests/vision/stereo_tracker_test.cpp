@@ -5,8 +5,12 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cctype>
+#include <fstream>
 #include <iostream>
+#include <map>
 #include <opencv2/imgproc.hpp>
+#include <regex>
 
 #include "pulsetrack/analysis/plate.hpp"
 #include "pulsetrack/record/track_csv.hpp"
@@ -237,6 +241,30 @@ TEST(StereoTracker, RedetectsWhenTooFewRemain) {
   ASSERT_TRUE(filled) << filled.error().message;
   EXPECT_GT(*filled, 20);
   for (const Feature& f : t2.features()) EXPECT_GT(f.id, max_id2);
+}
+
+// What a ROS 2 node reads: Feature.msg's REASON_* constants. Every gate the tracker reports has
+// the constant of its name with its value, and there are no others (the .msg is parsed here as
+// text, the way rosidl reads it).
+TEST(StereoTracker, GatesAreTheReasonConstantsOfFeatureMsg) {
+  std::ifstream msg(std::string(PULSETRACK_SOURCE_DIR) +
+                    "/msgs/ros/pulsetrack_msgs/msg/Feature.msg");
+  ASSERT_TRUE(msg);
+  std::map<std::string, int> reasons;
+  const std::regex constant(R"(^uint8 REASON_([A-Z_]+)=(\d+))");
+  std::string line;
+  std::smatch m;
+  while (std::getline(msg, line)) {
+    if (std::regex_search(line, m, constant)) reasons[m[1].str()] = std::stoi(m[2].str());
+  }
+  constexpr int kGates = static_cast<int>(Gate::kLeftRight) + 1;
+  EXPECT_EQ(static_cast<int>(reasons.size()), kGates);
+  for (int g = 0; g < kGates; ++g) {
+    std::string name = toString(static_cast<Gate>(g));
+    for (char& ch : name) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
+    ASSERT_TRUE(reasons.contains(name)) << "Feature.msg has no REASON_" << name;
+    EXPECT_EQ(reasons[name], g) << "REASON_" << name;
+  }
 }
 
 // Kabsch (analysis/plate.hpp) on OpenCV vectors, as the simulator's pose.

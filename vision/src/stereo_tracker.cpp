@@ -178,7 +178,7 @@ StereoTracker::StereoTracker(const StereoRig& rig, const TrackerConfig& config)
   scores_.resize(static_cast<size_t>(side) * side);
   residuals_.resize(static_cast<size_t>(std::max(config_.max_features, 1)));
   const auto refresh = static_cast<size_t>(std::max(config_.stereo_refresh, 1));
-  refresh_ratio_.resize(refresh);
+  refresh_ml_.resize(refresh);
   refresh_sorted_.resize(refresh);
   refresh_index_.resize(refresh);
 }
@@ -387,7 +387,7 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   std::vector<cv::Point2d> chosen =
       config_.detector == Detector::kDarkBlobs
           ? detectDarkBlobs(img)
-          : detectHarris(img, config_.report_masked ? &masked : nullptr);
+          : detectHarris(img, config_.evaluate_gates ? &masked : nullptr);
   if (fill) {
     // Only where no feature is (ok or hidden: a hidden one comes back under its id).
     const double d2 = double(config_.fill_distance_px) * config_.fill_distance_px;
@@ -552,25 +552,6 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
         refined = true;
       }
     }
-    // Left-right consistency: the right patch (nearest pixel) searched for in the left image
-    // over the reversed box; the peak, moved by the same sub-pixel remainder, must come back to
-    // the left point.
-    bool left_right = false;
-    {
-      const cv::Point pr0(static_cast<int>(std::lround(c.right[0])),
-                          static_cast<int>(std::lround(c.right[1])));
-      NccTemplate back;
-      if (pr0.x - kHalf >= 0 && pr0.y - kHalf >= 0 && pr0.x + kHalf < right.cols &&
-          pr0.y + kHalf < right.rows &&
-          back.set(right.ptr<uint8_t>(pr0.y - kHalf) + pr0.x - kHalf, right.step, kSide, kSide) &&
-          searchWindow(left, back, pr0.x - sx1, pr0.y - sy1, nx, ny, scores.data(), scratch_.data(),
-                       scratch_.size())) {
-        const Peak bp = findPeak(scores.data(), nx, ny);
-        const cv::Vec2d came_back(pr0.x - sx1 + bp.i + bp.sub.dx + (c.right[0] - pr0.x),
-                                  pr0.y - sy1 + bp.j + bp.sub.dy + (c.right[1] - pr0.y));
-        left_right = !bp.interior || cv::norm(came_back - c.left) > config_.max_left_right_px;
-      }
-    }
     const uint8_t* tl = nullptr;
     const uint8_t* tr = nullptr;
     bool glint = false;
@@ -590,6 +571,26 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
           Gate::kStereoNcc);
     check(c.nmi < config_.min_nmi, FeatureStatus::kOccluded, Gate::kNmi);
     check(glint, FeatureStatus::kOccluded, Gate::kGlint);
+    // Left-right consistency: the right patch (nearest pixel) searched for in the left image
+    // over the reversed box; the peak, moved by the same sub-pixel remainder, must come back to
+    // the left point.
+    // (Only while no gate has spoken, unless evaluating: it is a second box search.)
+    bool left_right = false;
+    if (c.gate == Gate::kNone || config_.evaluate_gates) {
+      const cv::Point pr0(static_cast<int>(std::lround(c.right[0])),
+                          static_cast<int>(std::lround(c.right[1])));
+      NccTemplate back;
+      if (pr0.x - kHalf >= 0 && pr0.y - kHalf >= 0 && pr0.x + kHalf < right.cols &&
+          pr0.y + kHalf < right.rows &&
+          back.set(right.ptr<uint8_t>(pr0.y - kHalf) + pr0.x - kHalf, right.step, kSide, kSide) &&
+          searchWindow(left, back, pr0.x - sx1, pr0.y - sy1, nx, ny, scores.data(), scratch_.data(),
+                       scratch_.size())) {
+        const Peak bp = findPeak(scores.data(), nx, ny);
+        const cv::Vec2d came_back(pr0.x - sx1 + bp.i + bp.sub.dx + (c.right[0] - pr0.x),
+                                  pr0.y - sy1 + bp.j + bp.sub.dy + (c.right[1] - pr0.y));
+        left_right = !bp.interior || cv::norm(came_back - c.left) > config_.max_left_right_px;
+      }
+    }
     check(left_right, FeatureStatus::kOccluded, Gate::kLeftRight);
     check(c.epipolar_px > config_.max_epipolar_px, FeatureStatus::kOutlierEpipolar,
           Gate::kEpipolar);
@@ -895,8 +896,19 @@ void StereoTracker::trackOne(size_t i, const cv::Mat& left, const cv::Mat& right
   check(gate_l == Gate::kGlint || gate_r == Gate::kGlint, FeatureStatus::kOccluded, Gate::kGlint);
   check(f.nmi < config_.min_nmi, FeatureStatus::kOccluded, Gate::kNmi);
   check(dropped(0, ncc_l) || dropped(1, ncc_r), FeatureStatus::kOccluded, Gate::kNccDrop);
+  // Past the first failing gate only when evaluating: an occluded feature (half of them under
+  // an instrument) costs no epipolar distance or LM triangulation per pair.
+  const auto rejected = [&] { return first != Gate::kNone && !config_.evaluate_gates; };
+  if (rejected()) {
+    keep_last(status, first);
+    return;
+  }
   const double epipolar = rig_.epipolarDistances(f.left, f.right)[0];
   check(epipolar > config_.max_epipolar_px, FeatureStatus::kOutlierEpipolar, Gate::kEpipolar);
+  if (rejected()) {
+    keep_last(status, first);
+    return;
+  }
   const Triangulation t = triangulate(rig_, f.left, f.right);
   check(!t.ok, FeatureStatus::kOutlierTriangulation, Gate::kTriangulation);
   if (first != Gate::kNone) {
@@ -968,8 +980,8 @@ int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noex
     const double mr = regionMean(right, features_[i].right, half);
     if (!(ml > 0.0) || !(mr > 0.0)) continue;
     refresh_index_[m] = i;
-    refresh_ratio_[m] = mr / ml / states_[i].view_gain;
-    refresh_sorted_[m] = refresh_ratio_[m];
+    refresh_ml_[m] = ml;  // the left patch does not move below: its mean is reused
+    refresh_sorted_[m] = mr / ml / states_[i].view_gain;
     ++m;
   }
   if (m == 0) return 0;
@@ -997,8 +1009,8 @@ int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noex
         ar.ncc < std::max(config_.min_ncc, config_.min_stereo_ncc)) {
       continue;
     }
-    const double ml = regionMean(left, f.left, half), mr = regionMean(right, ar.warp.centre, half);
-    if (!(ml > 0.0) || std::abs(mr / ml / s.view_gain / drift - 1.0) > config_.max_sheen ||
+    const double ml = refresh_ml_[k], mr = regionMean(right, ar.warp.centre, half);
+    if (std::abs(mr / ml / s.view_gain / drift - 1.0) > config_.max_sheen ||
         neighbourhoodMax(right, ar.warp.centre, config_.specular_margin_px) >=
             config_.specular_threshold ||
         neighbourhoodMax(left, f.left, config_.specular_margin_px) >= config_.specular_threshold) {

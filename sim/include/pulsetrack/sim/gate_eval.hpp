@@ -84,7 +84,7 @@ struct PhotoEvaluation {
   int accepted_judged = 0;
   int accepted_good = 0;
 };
-// pulsetrack's detection and stereo match (StereoTracker::initialize with report_masked) on the
+// pulsetrack's detection and stereo match (StereoTracker::initialize with evaluate_gates) on the
 // pair, through rectifiedRig(), with a search box covering [dmin, dmax] px.
 vision::Result<PhotoEvaluation> evaluatePhotoPair(const PhotoPair& p,
                                                   const vision::TrackerConfig& config, int dmin,
@@ -99,7 +99,7 @@ struct SceneRunOptions {
   // good to a quarter pixel and 1 px is the usual criterion there; the simulator's is exact,
   // and 0.3 px of disparity is 0.2 mm of depth here: a bias the accuracy aims would not allow.
   double right_px = 0.3;
-  vision::TrackerConfig tracker;  // report_masked is set by the run
+  vision::TrackerConfig tracker;  // evaluate_gates is set by the run
 };
 
 struct SceneRun {

@@ -137,9 +137,11 @@ struct TrackerConfig {
   // ... and searched within this many px of there (the prediction is good to a pixel: 0.3 px
   // RMS on cortex-hard; a smaller window also keeps 30 hidden features cheap).
   int reacquire_search_px = 3;
-  // Evaluation only (`pulsetrack gates`): the Harris maxima the specular mask removed are
-  // matched too and reported among candidates() with the glint gate; never tracked.
-  bool report_masked = false;
+  // Evaluation only (bench/gate_eval): every gate is evaluated on every match (otherwise the
+  // tracker stops at the first that fails: no left-right search for a rejected candidate, no
+  // triangulation of an occluded feature per pair), and the Harris maxima the specular mask
+  // removed are matched too and reported among candidates() with the glint gate (never tracked).
+  bool evaluate_gates = false;
   // Stereo refresh (refreshStereo()): features whose stereo match is measured again per call.
   // The first frame's stereo match carries that pair's sensor noise for good (0.1-0.2 px of
   // disparity on weak texture: 0.06-0.12 mm of depth); matching again in later pairs, whose noise
@@ -266,10 +268,10 @@ class StereoTracker {
   std::vector<Feature> features_;
   std::vector<State> states_;
   std::vector<StereoCandidate> candidates_;
-  std::vector<float> scores_;          // sized once: (2R+1)^2
-  std::vector<uint8_t> scratch_;       // a padded copy of a window near the image border
-  std::vector<double> residuals_;      // surface gate, sized to max_features
-  std::vector<double> refresh_ratio_;  // refreshStereo()'s gain ratios, sized once
+  std::vector<float> scores_;       // sized once: (2R+1)^2
+  std::vector<uint8_t> scratch_;    // a padded copy of a window near the image border
+  std::vector<double> residuals_;   // surface gate, sized to max_features
+  std::vector<double> refresh_ml_;  // refreshStereo()'s left patch means, sized once
   std::vector<double> refresh_sorted_;
   std::vector<size_t> refresh_index_;
   int retirable_ = 0;              // features past retire_after_pairs

@@ -9,13 +9,14 @@
 //   time (detection allocates; between attempts a pair costs nothing and allocates nothing);
 //   an ROI that cannot work (outside the image, smaller than two templates) is refused by
 //   checkRoi() and never detected in;
-// - track every pair; re-detect (redetect(), new ids, continuity kept) when the tracker asks
+// - track every pair; re-detect (redetect(): it fills, new ids only where no feature is,
+//   continuity kept) when the tracker asks
 //   (too few features ok) or on requestRedetect(); stop() pauses until start();
 // - afterPublish(): the tracker's stereo refresh, once the pair's result is out.
 //
 // The deformation: the mean displacement of the ok features from their reference positions
 // (point0, which the stereo refresh corrects with the positions). When the set of ok features
-// changes (an instrument hides some, they come back, a re-detection replaces them) the signal
+// changes (an instrument hides some, they come back, a re-detection adds some) the signal
 // continues: the step is the mean displacement increment of the features ok in both pairs, so
 // nothing jumps because the mean is taken over other points. Velocity: the slope of a causal
 // least-squares line through the displacement over the last velocity_window_s, published with
