@@ -54,7 +54,32 @@ int main(int argc, char** argv) try {
   app.add_option("--max-epipolar", config.max_epipolar_px, "Epipolar gate, px")
       ->capture_default_str();
   app.add_option("--max-ncc-drop", config.max_ncc_drop, "NCC drop gate")->capture_default_str();
+  app.add_option("--min-distance", config.min_distance_px, "Corners at least this far apart, px")
+      ->capture_default_str();
+  app.add_option("--sensitivity-min", config.sensitivity_min,
+                 "Weakest corner, fraction of the strongest Harris response")
+      ->capture_default_str();
+  app.add_option("--min-isotropy", config.min_isotropy, "Corner isotropy gate")
+      ->capture_default_str();
+  app.add_option("--min-fill", config.min_fill,
+                 "Detection matches more corners while fewer than this share of the ceiling pass")
+      ->capture_default_str();
+  app.add_option("--max-motion", config.max_motion_px,
+                 "Motion gate: disparity change beyond the neighbours', px")
+      ->capture_default_str();
+  app.add_option("--min-block-ncc", config.min_block_ncc,
+                 "Depth-edge gate: the template's corner blocks' NCC at the match")
+      ->capture_default_str();
+  app.add_option("--grid", config.grid_cols, "Detection grid: cells per side")
+      ->capture_default_str();
+  app.add_option(
+         "--glint-excess", config.glint_excess,
+         "Tracking glint gate: grey levels over the gain-scaled brightest pixel at detection")
+      ->capture_default_str();
+  app.add_option("--max-left-right", config.max_left_right_px, "Left-right gate, px")
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  config.grid_rows = config.grid_cols;
 
   if (no_photos) photos.clear();
   for (const std::string& dir : photos) {
@@ -109,19 +134,19 @@ int main(int argc, char** argv) try {
   fmt::print(
       "{}: {} pairs; first pair {} ok of ceiling {}; textured grid cells {}, of them without a "
       "feature {}; detections {}; distinct ids {}; pairs with >= 50 ok {:.1f} %\n"
-      "  instrument: {} features hidden while it rested, {} back under their ids 1 s after it "
-      "left ({:.1f} %)\n"
+      "  instrument: covers {:.1f} % of the ROI from either camera while it rests; {} features "
+      "hidden then, {} back under their ids 1 s after it left ({:.1f} %)\n"
       "  accuracy: {} ok samples, 3D RMS {:.4f} mm, max {:.3f} mm, above 0.5 mm {}; mean "
       "displacement error {:.4f} mm RMS per axis; breathing amplitude off by {:.2f} %, cardiac "
       "{:.2f} %\n  time per tracked pair: track {:.3f} ms (re-acquisition included; {:.1f} ok, {} "
       "features), stereo refresh after it {:.3f} ms\n",
       spec->name, run->pairs, run->first_ok, config.max_features, run->textured_cells,
       run->empty_textured_cells, run->detections, run->distinct_ids,
-      100.0 * at50 / std::max(1, run->pairs), run->hidden, run->back_within_1s,
-      100.0 * run->back_within_1s / std::max(1, run->hidden), run->ok_samples, run->rms_3d_mm,
-      run->max_3d_mm, run->above_half_mm, run->displacement_rms_mm, 100.0 * run->breathing_error,
-      100.0 * run->cardiac_error, run->ms_per_pair_tracking, run->mean_ok, config.max_features,
-      run->ms_per_pair_refresh);
+      100.0 * at50 / std::max(1, run->pairs), 100.0 * run->instrument_covers, run->hidden,
+      run->back_within_1s, 100.0 * run->back_within_1s / std::max(1, run->hidden), run->ok_samples,
+      run->rms_3d_mm, run->max_3d_mm, run->above_half_mm, run->displacement_rms_mm,
+      100.0 * run->breathing_error, 100.0 * run->cardiac_error, run->ms_per_pair_tracking,
+      run->mean_ok, config.max_features, run->ms_per_pair_refresh);
   return 0;
 } catch (const std::exception& e) {
   std::fprintf(stderr, "gate_eval: internal error: %s\n", e.what());

@@ -26,12 +26,16 @@ bool evaluated(Gate g, uint16_t failed, bool tracking) {
   const uint16_t bit = gateBit(g);
   if (g == Gate::kNone) return false;
   if (tracking) {
-    if (g == Gate::kStereoNcc || g == Gate::kSheen || g == Gate::kLeftRight) return false;
+    if (g == Gate::kStereoNcc || g == Gate::kSheen || g == Gate::kLeftRight ||
+        g == Gate::kDepthEdge)
+      return false;
     if ((failed & kLostGates) != 0) return (failed & bit) != 0;  // no match to judge further
-    if (g == Gate::kSurface) return (failed & ~gateBit(Gate::kSurface)) == 0;
+    // The motion and surface gates judge the features that passed the others.
+    if (g == Gate::kSurface || g == Gate::kMotion)
+      return (failed & ~(gateBit(Gate::kSurface) | gateBit(Gate::kMotion))) == 0;
     return true;
   }
-  if (g == Gate::kNccDrop) return false;  // tracking only
+  if (g == Gate::kNccDrop || g == Gate::kMotion) return false;  // tracking only
   if ((failed & gateBit(Gate::kNoPeak)) != 0) return g == Gate::kNoPeak;
   if ((bit & (kLateGates | gateBit(Gate::kImageBorder))) != 0)
     return (failed & ~(kLateGates | gateBit(Gate::kImageBorder))) == 0;
@@ -266,7 +270,21 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
   const double ramp = (1.0 - in.hold_fraction) / 2.0 * in.duration_s;
   const double rest_from = in.start_s + ramp, rest_to = in.start_s + in.duration_s - ramp;
   const double gone = in.start_s + in.duration_s;
+  SceneRun run;
 
+  if (in.enabled) {
+    const double mid = (rest_from + rest_to) / 2.0, r = options.roi_radius_mm;
+    long inside = 0, covered = 0;
+    for (double v = -r; v <= r; v += 0.25) {
+      for (double u = -r; u <= r; u += 0.25) {
+        if (u * u + v * v > r * r) continue;
+        ++inside;
+        const cv::Vec3d p = scene->position(u, v, mid);
+        if (scene->occluded(p, centre_l, mid) || scene->occluded(p, centre_r, mid)) ++covered;
+      }
+    }
+    run.instrument_covers = static_cast<double>(covered) / static_cast<double>(inside);
+  }
   struct Truth {
     cv::Vec2d uv;
     double t_ref = 0;
@@ -275,7 +293,6 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
   std::map<int, Truth> truth;
   std::set<int> ids;
   std::set<int> ok_before, hidden, back;
-  SceneRun run;
   std::vector<double> err3, errd;
   std::vector<double> ts;
   std::vector<cv::Vec3d> meas, tru;

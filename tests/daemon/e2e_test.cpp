@@ -356,8 +356,8 @@ TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {
 }
 
 // The capture cycle over the command topic, by `pulsetrack ctl` and by raw samples: redetect
-// gives new ids, stop stops the features, start resumes them; garbage and a flood are refused
-// and reported on health, and the daemon stays ok.
+// re-detects (the deformation's count of feature sets goes up), stop stops the features, start
+// resumes them; garbage and a flood are refused and reported on health, and the daemon stays ok.
 TEST(Daemon, CaptureCycleCommandsAndGarbage) {
   test::TempDir dir;
   const uint32_t domain = 76;
@@ -368,6 +368,12 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
       dds::Writer::create(*sub.participant, dds::kCommandTopic,
                           &pulsetrack_msgs_msg_dds__Command__desc, dds::Profile::kCommand);
   ASSERT_TRUE(commands);
+  auto deformation =
+      dds::Reader::create(*sub.participant, dds::kDeformationTopic,
+                          &pulsetrack_msgs_msg_dds__Deformation__desc, dds::Profile::kSensorData);
+  ASSERT_TRUE(deformation);
+  pulsetrack_msgs_msg_dds__Deformation_ def{};
+  uint32_t detections = 0;  // the largest feature-set count seen on the deformation topic
   const auto secs = [&] { return sub.secs(); };
   // Features for `seconds`: how many samples, and the largest feature id seen.
   const auto collect = [&](double seconds, int& samples, int& max_id) {
@@ -376,6 +382,8 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
     const double until = secs() + seconds;
     while (secs() < until) {
       d.drain(secs());
+      while (deformation->takeOne(&def, std::chrono::milliseconds(0)))
+        detections = std::max(detections, def.detections);
       if (!sub.features->takeOne(&sub.f, std::chrono::milliseconds(50))) continue;
       ++samples;
       for (uint32_t i = 0; i < sub.f.features._length; ++i)
@@ -390,10 +398,15 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
     d.drain(secs());
   collect(3.0, n, id0);
   EXPECT_GT(n, 3);
+  const uint32_t detections0 = detections;
+  EXPECT_GE(detections0, 1U);
   auto r = test::run(ctl + "redetect");
   EXPECT_EQ(r.exit_code, 0) << r.output;
   collect(2.0, n, id1);
-  EXPECT_GT(id1, id0);  // new features, new ids
+  // A re-detection happened; it fills around the features kept under their ids (none lost,
+  // new ids only where the ROI had room).
+  EXPECT_GT(detections, detections0);
+  EXPECT_GE(id1, id0);
   r = test::run(ctl + "stop");
   EXPECT_EQ(r.exit_code, 0) << r.output;
   collect(0.5, n, id2);  // in flight
@@ -447,6 +460,7 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
   EXPECT_NE(r.output.find("no pulsetrackd is listening"), std::string::npos) << r.output;
   kill(d.pid, SIGTERM);
   EXPECT_EQ(d.wait(secs), 0);
+  dds_sample_free(&def, &pulsetrack_msgs_msg_dds__Deformation__desc, DDS_FREE_CONTENTS);
 }
 
 }  // namespace

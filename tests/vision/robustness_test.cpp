@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 
 #include <iostream>
+#include <string>
 
 #include "pulsetrack/sim/gate_eval.hpp"
 
@@ -30,17 +31,19 @@ TEST(Robustness, RealPhotographsWithTrueDisparity) {
     std::cout << "  pulsetrack " << e->accepted << " accepted of " << e->candidates << ", " << right
               << " % within 1 px; plain OpenCV matcher " << e->plain.accepted << " of "
               << e->plain.candidates << ", " << plain_right << " % within 1 px\n";
-    // The issue: never fewer than 50 accepted of ~100 candidates, and more often right than
-    // the plain matcher. (Its >= 95 % within 1 px is met on cones, not on teddy: the wrong
-    // ones are corners on a depth edge whose template the nearer surface fills - 5 px off at
-    // NCC 0.96-0.999, which no gate here sees. Guarded at today's level.)
-    // (teddy: exactly 50, cones 70; a margin of two for other CPUs' SIMD targets.)
-    EXPECT_GE(e->accepted, 48) << name;
+    // The issue: at least as many accepted as the plain matcher, never fewer than 50, >= 95 %
+    // within 1 px. Met on cones (100 accepted, 98 % right; plain 93 at 76 %). Not on teddy: 72
+    // accepted at 93 % (plain 94 at 72 %): the detector takes corners darker than their
+    // surroundings (the paper's vessels), and teddy has 155 of them; the wrong ones left are on
+    // depth edges the depth-edge gate does not see. Guarded at today's level (a margin of two
+    // for other CPUs' SIMD targets).
+    EXPECT_GE(e->accepted, std::string(name) == "cones" ? e->plain.accepted : 70) << name;
     EXPECT_GT(right, plain_right + 5.0) << name;
-    EXPECT_GE(right, 85.0) << name;
+    EXPECT_GE(right, std::string(name) == "cones" ? 95.0 : 91.0) << name;
     // Every gate was evaluated on right and wrong matches, so its rates mean something.
-    for (vision::Gate g : {vision::Gate::kNcc, vision::Gate::kStereoNcc, vision::Gate::kLeftRight,
-                           vision::Gate::kNotConverged, vision::Gate::kEpipolar}) {
+    for (vision::Gate g :
+         {vision::Gate::kNcc, vision::Gate::kStereoNcc, vision::Gate::kLeftRight,
+          vision::Gate::kNotConverged, vision::Gate::kEpipolar, vision::Gate::kDepthEdge}) {
       const GateRates& r = e->table.gates[static_cast<size_t>(g)];
       EXPECT_GT(r.good, 40) << name << " " << vision::toString(g);
       EXPECT_GT(r.bad, 10) << name << " " << vision::toString(g);
@@ -48,6 +51,11 @@ TEST(Robustness, RealPhotographsWithTrueDisparity) {
     // The glint gate at 250 rejects few right matches on photographs (at 215: 43 %).
     const GateRates& glint = e->table.gates[static_cast<size_t>(vision::Gate::kGlint)];
     EXPECT_LE(glint.good_rejected, glint.good / 8) << name;
+    // The depth-edge gate (corner blocks matched on their own): few right ones rejected (0.9 %
+    // and 6.9 % at 0.5), a third or more of the wrong ones caught (37 % and 56 %).
+    const GateRates& edge = e->table.gates[static_cast<size_t>(vision::Gate::kDepthEdge)];
+    EXPECT_LE(edge.good_rejected * 10, edge.good) << name;
+    EXPECT_GE((edge.bad - edge.bad_passed) * 3, edge.bad) << name;
   }
 }
 
@@ -76,12 +84,11 @@ TEST(Robustness, HardCortexSceneKeepsFeaturesAndTheirIds) {
             << " %, cardiac " << 100 * run->cardiac_error << " %; track "
             << run->ms_per_pair_tracking << " ms/pair, refresh " << run->ms_per_pair_refresh
             << " ms/pair\n";
-  // Detection under glints and unequal gains. The issue's aim (>= 80 of 100, no textured cell
-  // empty) is not met: 64 at the first pair (41 before this issue's changes), 5 of 23 textured
-  // cells empty. Relaxing the affine refinement's convergence (0.01 px instead of 1e-3) gives
-  // 100, but then sheen-biased matches pass (the static glossy cortex's worst feature 0.24 mm
-  // instead of 0.076): accuracy first. Guarded at today's level.
-  EXPECT_GE(run->first_ok, 60);
+  // Detection under glints and unequal gains: >= 80 of the ceiling of 100 (100: the detector
+  // matches corners until the ceiling passes its gates). The issue's "no textured cell empty" is
+  // not met: 5 of 22 cells whose right candidates are all under glints or fail the stereo NCC
+  // gate in their sheen. Guarded at today's level.
+  EXPECT_GE(run->first_ok, 80);
   EXPECT_GE(run->textured_cells, 15);
   EXPECT_LE(run->empty_textured_cells, 6);
   // Identity: the features keep their ids through the instrument, shadow and glints.
@@ -90,18 +97,30 @@ TEST(Robustness, HardCortexSceneKeepsFeaturesAndTheirIds) {
   // Re-acquisition: >= 90 % of the features the instrument hid are back within 1 s.
   EXPECT_GE(run->hidden, 20);
   EXPECT_GE(run->back_within_1s, (9 * run->hidden + 9) / 10);
-  // >= 50 features accepted: the aim is >= 80 % of the pairs; 60 % today (the instrument and
-  // the shadow hide more than 14 of the 64). Guarded.
-  EXPECT_GE(frac50, 0.55);
-  // Breathing and cardiac amplitudes within 1 %.
+  // The instrument covers "30 % of the ROI" as the issue has it (24.8 %: hidden from either
+  // camera, over the ROI's circle, mid-rest), and >= 50 features are accepted in >= 80 % of
+  // the pairs (80.5 %: the vessels are densest under the instrument, 43-46 of the 100
+  // features' centres are hidden while it rests and 48-50 stay ok of the 54-57 visible).
+  EXPECT_GE(run->instrument_covers, 0.2);
+  EXPECT_LE(run->instrument_covers, 0.35);
+  EXPECT_GE(frac50, 0.8);
+  // Breathing and cardiac amplitudes within 1 %; no accepted sample above 0.5 mm (the motion
+  // gate took the one at 0.86 mm: a right match sliding onto the instrument's edge);
+  // the mean-displacement signal within 0.005 mm RMS per axis (0.0037).
   EXPECT_LE(run->breathing_error, 0.01);
   EXPECT_LE(run->cardiac_error, 0.01);
-  // Not yet the issue's aims (3D RMS <= 0.03 mm, mean displacement <= 0.005 mm, none above
-  // 0.5 mm): 0.040 mm, 0.014 mm and one sample (0.86 mm max). Guarded at today's level.
-  EXPECT_LE(run->rms_3d_mm, 0.05);
-  EXPECT_LE(run->max_3d_mm, 1.0);
-  EXPECT_LE(run->above_half_mm, 5);
-  EXPECT_LE(run->displacement_rms_mm, 0.017);
+  EXPECT_EQ(run->above_half_mm, 0);
+  EXPECT_LE(run->displacement_rms_mm, 0.005);
+  // Not yet the issue's aim: 3D RMS <= 0.03 mm (0.037: 0.023 mm of it each feature's own
+  // constant depth bias, 0.028 mm per-pair depth noise). Guarded at today's level.
+  EXPECT_LE(run->rms_3d_mm, 0.04);
+  EXPECT_LE(run->max_3d_mm, 0.4);
+  // The tracking glint gate tells a glint from tissue a camera's gain saturated: it rejects
+  // almost no right video match (7 % before glint_excess) and the motion gate none.
+  const GateRates& glint = run->tracking.gates[static_cast<size_t>(vision::Gate::kGlint)];
+  EXPECT_LE(glint.good_rejected * 100, glint.good);
+  const GateRates& motion = run->tracking.gates[static_cast<size_t>(vision::Gate::kMotion)];
+  EXPECT_LE(motion.good_rejected * 1000, motion.good);
   // Accepted matches are right (both views within 0.3 px of the truth) in >= 98 % of cases.
   EXPECT_GE(run->tracking.accepted_good, run->tracking.accepted * 98 / 100);
 }

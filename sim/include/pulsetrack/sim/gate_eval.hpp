@@ -27,7 +27,7 @@
 
 namespace pulsetrack::sim {
 
-inline constexpr size_t kGateCount = 14;  // Gate values 0..13
+inline constexpr size_t kGateCount = 16;  // Gate values 0..15
 
 struct GateRates {
   long good = 0;           // right matches the gate was evaluated on
@@ -107,6 +107,9 @@ struct SceneRun {
   GateTable tracking;   // every feature of every pair after its detection
   int pairs = 0;
   int first_ok = 0;  // features ok at the first pair
+  // The share of the ROI's surface (the circle of roi_radius_mm) the instrument hides from
+  // either camera while it rests (mid-rest; 0 without an instrument).
+  double instrument_covers = 0.0;
   // The first detection on a 5x5 grid over the left ROI: cells with a corner that has a right
   // match (texture a feature could be on; masked corners included), and those of them without
   // an ok feature.

@@ -59,6 +59,10 @@ enum class Gate : uint8_t {
   kStereoNcc,      // the left-right match's NCC below min_stereo_ncc
   kLeftRight,      // the right patch, matched back in the left image, lands farther than
                    // max_left_right_px from the left point (a depth edge, a repeated pattern)
+  kMotion,         // its disparity changed by more than max_motion_px beyond what its
+                   // neighbours' motion predicts (one view's match slid off the tissue)
+  kDepthEdge,      // a textured corner block of the template does not match where the
+                   // whole does (min_block_ncc): a nearer surface fills part of it
 };
 const char* toString(Gate g) noexcept;
 // A set of gates (bit 1 << value): every gate a match failed, not only the first.
@@ -81,7 +85,10 @@ struct TrackerConfig {
   int grid_cols = 5;
   int grid_rows = 5;
   double harris_k = 0.04;
-  double sensitivity_min = 1e-3;  // weakest corner taken, fraction of the strongest response
+  // Weakest corner taken, fraction of the strongest response. 1e-4: the corners are taken in
+  // cell round-robin order until the ceiling passes, so weak ones are reached only where the
+  // strong ones failed (teddy: 50 accepted at 1e-3, 73 at 1e-4; cortex scenes unchanged).
+  double sensitivity_min = 1e-4;
   int min_distance_px = 12;
   double min_isotropy = 0.25;  // smaller / larger eigenvalue of the template's structure tensor
   // Grey level from which a pixel is (part of) a glint. Chosen by gate_eval: at 215 the gate
@@ -92,9 +99,15 @@ struct TrackerConfig {
   int specular_threshold = 250;
   int specular_dilate_px = 13;  // the template's half size plus the sheen around a glint
   int specular_margin_px = 6;   // the same margin around a match, in either camera
-  int dark_window_px = 21;      // "darker than the neighbourhood" window
-  int dark_delta = 2;           // grey levels below the local mean
-  int video_search_px = 8;      // +- window around the last position
+  // Tracking: a pixel over specular_threshold is a glint only when it is brighter by more than
+  // this than the patch's brightest pixel at detection scaled by the patch's gain change since
+  // (the mean's ratio). A camera whose gain drifts up 30 % saturates bright tissue: that is not
+  // a glint and did not move the match (cortex-hard: the gate rejected 7 % of right video
+  // matches, most of them so).
+  double glint_excess = 15.0;
+  int dark_window_px = 21;  // "darker than the neighbourhood" window
+  int dark_delta = 2;       // grey levels below the local mean
+  int video_search_px = 8;  // +- window around the last position
   double min_ncc = 0.75;
   // A feature's video NCC is steady while it is seen (0.95-0.99 on tissue); a drop below its
   // own running level by more than this is an occlusion starting (an instrument's edge), even
@@ -110,6 +123,14 @@ struct TrackerConfig {
   // Left-right consistency at detection: the right patch matched back in the left image (the
   // same search box, reversed) must land within this of the left point.
   double max_left_right_px = 1.0;
+  // Tracking: a feature's change of disparity since the epoch may differ from the mean of its
+  // reacquire_neighbours nearest ok features' by at most this (px). The tissue moves smoothly:
+  // neighbours 5-10 mm apart change depth together; one view's match sliding onto an
+  // instrument's edge or into sheen does not.
+  double max_motion_px = 0.5;
+  // Detection: each textured 8x8 corner block of the template must correlate with the right
+  // view at the match at least this well (a depth edge's other surface does not).
+  double min_block_ncc = 0.5;
   double min_nmi = 0.25;
   double max_epipolar_px = 1.0;
   double max_surface_mm = 2.0;      // distance to the fitted parabola
@@ -128,7 +149,7 @@ struct TrackerConfig {
   int fill_distance_px = 30;
   // Detection matches as many corners as the ceiling, and more while fewer than this fraction
   // of the ceiling pass the gates (cortex-hard: 41 of 100 without it, 100 with it).
-  double min_fill = 0.8;
+  double min_fill = 1.0;
   int retire_after_pairs = 300;
   // A feature that is not ok is searched for again from where its neighbours' motion puts it:
   // the mean image motion of its this many nearest ok features (in the reference pair), added
@@ -233,13 +254,18 @@ class StereoTracker {
     cv::Vec2d stereo_offset{0.0, 0.0};             // mean (stereo match - right_track)
     int stereo_samples = 1;                        // the first pair's match counts as one
     cv::Matx22d stereo_warp = cv::Matx22d::eye();  // right offset per left offset (affine)
+    // Per camera, at detection: the brightest pixel and the mean of the patch with its glint
+    // margin (the tracking glint gate tells a glint from gain-brightened tissue by them).
+    std::array<double, 2> max0{255.0, 255.0};
+    std::array<double, 2> mean0{0.0, 0.0};
     double view_gain = 1.0;  // right / left brightness here: the nearest features' median
     // Where the feature would have been in the first detection's pair (its own position then,
     // or for a later one, its position less its neighbours' motion since): the common epoch
     // the neighbours' motion is measured from.
     cv::Vec2d epoch_left, epoch_right;
-    bool seen = true;      // ok in the last pair: tracked from there; else predicted
-    int not_ok_pairs = 0;  // pairs since it was last ok
+    bool seen = true;             // ok in the last pair: tracked from there; else predicted
+    int not_ok_pairs = 0;         // pairs since it was last ok
+    bool motion_outlier = false;  // motionGate()'s verdict in this pair
   };
   // Detection: fresh (initialize) or filling around the features there are (redetect).
   Result<int> detect(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
@@ -257,6 +283,7 @@ class StereoTracker {
   // gate that failed (kNone: found; kGlint: found, but a glint is on it).
   Gate trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc, double& nmi,
                    int radius) noexcept;
+  void motionGate() noexcept;
   void surfaceGate() noexcept;
   // Candidate positions in ROI coordinates (sub-pixel for blobs).
   [[nodiscard]] std::vector<cv::Point2d> detectHarris(const cv::Mat& img,
