@@ -76,6 +76,12 @@ int main(int argc, char** argv) try {
          "--glint-excess", config.glint_excess,
          "Tracking glint gate: grey levels over the gain-scaled brightest pixel at detection")
       ->capture_default_str();
+  app.add_option("--dark-delta", config.dark_delta,
+                 "Corners darker than their neighbourhood by at least this, grey levels")
+      ->capture_default_str();
+  app.add_option("--dense-distance", config.dense_distance_px,
+                 "Corners between the spaced ones down to this spacing, px (after all of those)")
+      ->capture_default_str();
   app.add_option("--max-left-right", config.max_left_right_px, "Left-right gate, px")
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);

@@ -32,14 +32,13 @@ TEST(Robustness, RealPhotographsWithTrueDisparity) {
               << " % within 1 px; plain OpenCV matcher " << e->plain.accepted << " of "
               << e->plain.candidates << ", " << plain_right << " % within 1 px\n";
     // The issue: at least as many accepted as the plain matcher, never fewer than 50, >= 95 %
-    // within 1 px. Met on cones (100 accepted, 98 % right; plain 93 at 76 %). Not on teddy: 72
-    // accepted at 93 % (plain 94 at 72 %): the detector takes corners darker than their
-    // surroundings (the paper's vessels), and teddy has 155 of them; the wrong ones left are on
-    // depth edges the depth-edge gate does not see. Guarded at today's level (a margin of two
-    // for other CPUs' SIMD targets).
-    EXPECT_GE(e->accepted, std::string(name) == "cones" ? e->plain.accepted : 70) << name;
+    // within 1 px. teddy: 100 accepted at 95.0 % (plain 94 at 71.9 %), cones: 100 at 98.0 %
+    // (plain 93 at 75.8 %). Asserted at 94 %: on teddy one match is a percent, and another
+    // CPU's SIMD target may round one NCC differently (the aim is met here at 95.0 %).
+    EXPECT_GE(e->accepted, e->plain.accepted) << name;
+    EXPECT_GE(e->accepted, 50) << name;
+    EXPECT_GE(right, 94.0) << name;
     EXPECT_GT(right, plain_right + 5.0) << name;
-    EXPECT_GE(right, std::string(name) == "cones" ? 95.0 : 91.0) << name;
     // Every gate was evaluated on right and wrong matches, so its rates mean something.
     for (vision::Gate g :
          {vision::Gate::kNcc, vision::Gate::kStereoNcc, vision::Gate::kLeftRight,

@@ -221,7 +221,7 @@ int StereoTracker::okCount() const noexcept {
   }));
 }
 
-std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img,
+std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img, size_t& spaced,
                                                      std::vector<cv::Point2d>* masked) const {
   cv::Mat specular = img >= config_.specular_threshold;
   const int sd = config_.specular_dilate_px;
@@ -287,6 +287,20 @@ std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img,
     const bool crowded = std::any_of(out.begin(), out.end(), [&](const cv::Point2d& o) {
       return std::abs(o.x - c.p.x) < config_.min_distance_px &&
              std::abs(o.y - c.p.y) < config_.min_distance_px;
+    });
+    if (!crowded) out.emplace_back(c.p.x, c.p.y);
+  }
+  // Then, after all of those, the corners between them down to dense_distance_px: taken only
+  // where the spaced ones did not fill the ceiling.
+  spaced = out.size();
+  const int dense = std::clamp(config_.dense_distance_px, 1, config_.min_distance_px);
+  for (const Candidate& c : maxima) {
+    if (dense >= config_.min_distance_px) break;
+    if (c.response < config_.sensitivity_min * max_response) break;
+    if (out.size() >= kCandidateFactor * static_cast<size_t>(std::max(config_.max_features, 1)))
+      break;
+    const bool crowded = std::any_of(out.begin(), out.end(), [&](const cv::Point2d& o) {
+      return std::abs(o.x - c.p.x) < dense && std::abs(o.y - c.p.y) < dense;
     });
     if (!crowded) out.emplace_back(c.p.x, c.p.y);
   }
@@ -416,20 +430,28 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   // Section 2.B, detection on the left ROI.
   const cv::Mat img = left(roi.left);
   std::vector<cv::Point2d> masked;
+  size_t spaced = 0;
   std::vector<cv::Point2d> chosen =
       config_.detector == Detector::kDarkBlobs
           ? detectDarkBlobs(img)
-          : detectHarris(img, config_.evaluate_gates ? &masked : nullptr);
+          : detectHarris(img, spaced, config_.evaluate_gates ? &masked : nullptr);
+  if (config_.detector == Detector::kDarkBlobs) spaced = chosen.size();
   if (fill) {
     // Only where no feature is (ok or hidden: a hidden one comes back under its id).
     const double d2 = double(config_.fill_distance_px) * config_.fill_distance_px;
-    std::erase_if(chosen, [&](const cv::Point2d& p) {
-      const cv::Vec2d at(p.x + roi.left.x, p.y + roi.left.y);
-      return std::any_of(features_.begin(), features_.end(), [&](const Feature& f) {
+    size_t kept = 0, kept_spaced = 0;
+    for (size_t k = 0; k < chosen.size(); ++k) {
+      const cv::Vec2d at(chosen[k].x + roi.left.x, chosen[k].y + roi.left.y);
+      const bool taken = std::any_of(features_.begin(), features_.end(), [&](const Feature& f) {
         const cv::Vec2d d = f.left - at;
         return d.dot(d) < d2;
       });
-    });
+      if (taken) continue;
+      if (k < spaced) ++kept_spaced;
+      chosen[kept++] = chosen[k];
+    }
+    chosen.resize(kept);
+    spaced = kept_spaced;
   }
   const size_t capacity =
       static_cast<size_t>(std::max(config_.max_features, 0)) -
@@ -437,8 +459,9 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   // The order to match them in: every cell's strongest, then every cell's second (spread over
   // the ROI), then the rest strongest first (a weak corner localizes worse: taking every cell's
   // third, fourth, ... before stronger ones elsewhere made the static glossy cortex's worst
-  // feature 0.085 mm and six over 0.05 mm at 100 features; this order, 0.051 mm and one). The
-  // masked ones (evaluation only) last.
+  // feature 0.085 mm and six over 0.05 mm at 100 features; this order, 0.051 mm and one), then
+  // the dense ones between them (dense_distance_px) strongest first. The masked ones
+  // (evaluation only) last.
   constexpr int kSpreadRounds = 2;
   {
     const int cols = std::max(1, config_.grid_cols), rows = std::max(1, config_.grid_rows);
@@ -451,12 +474,13 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
     }
     std::vector<std::pair<int, cv::Point2d>> ranked;  // (round, point)
     ranked.reserve(chosen.size());
-    for (const cv::Point2d& p : chosen) {
+    for (size_t k = 0; k < chosen.size(); ++k) {
+      const cv::Point2d& p = chosen[k];
       const int cx = std::clamp(static_cast<int>(p.x) * cols / img.cols, 0, cols - 1);
       const int cy = std::clamp(static_cast<int>(p.y) * rows / img.rows, 0, rows - 1);
       const int rank =
           per_cell[static_cast<size_t>(cy) * static_cast<size_t>(cols) + static_cast<size_t>(cx)]++;
-      ranked.emplace_back(std::min(rank, kSpreadRounds), p);
+      ranked.emplace_back(k < spaced ? std::min(rank, kSpreadRounds) : kSpreadRounds + 1, p);
     }
     std::stable_sort(ranked.begin(), ranked.end(),
                      [](const auto& a, const auto& b) { return a.first < b.first; });
