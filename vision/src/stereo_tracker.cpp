@@ -280,30 +280,23 @@ std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img, size_t&
   // leave the ROI short). At most kCandidateFactor x the ceiling.
   constexpr size_t kCandidateFactor = 4;
   std::vector<cv::Point2d> out;
-  for (const Candidate& c : maxima) {
-    if (c.response < config_.sensitivity_min * max_response) break;
-    if (out.size() >= kCandidateFactor * static_cast<size_t>(std::max(config_.max_features, 1)))
-      break;
-    const bool crowded = std::any_of(out.begin(), out.end(), [&](const cv::Point2d& o) {
-      return std::abs(o.x - c.p.x) < config_.min_distance_px &&
-             std::abs(o.y - c.p.y) < config_.min_distance_px;
-    });
-    if (!crowded) out.emplace_back(c.p.x, c.p.y);
-  }
+  const auto take = [&](int spacing) {
+    for (const Candidate& c : maxima) {
+      if (c.response < config_.sensitivity_min * max_response) break;
+      if (out.size() >= kCandidateFactor * static_cast<size_t>(std::max(config_.max_features, 1)))
+        break;
+      const bool crowded = std::any_of(out.begin(), out.end(), [&](const cv::Point2d& o) {
+        return std::abs(o.x - c.p.x) < spacing && std::abs(o.y - c.p.y) < spacing;
+      });
+      if (!crowded) out.emplace_back(c.p.x, c.p.y);
+    }
+  };
+  take(config_.min_distance_px);
   // Then, after all of those, the corners between them down to dense_distance_px: taken only
   // where the spaced ones did not fill the ceiling.
   spaced = out.size();
   const int dense = std::clamp(config_.dense_distance_px, 1, config_.min_distance_px);
-  for (const Candidate& c : maxima) {
-    if (dense >= config_.min_distance_px) break;
-    if (c.response < config_.sensitivity_min * max_response) break;
-    if (out.size() >= kCandidateFactor * static_cast<size_t>(std::max(config_.max_features, 1)))
-      break;
-    const bool crowded = std::any_of(out.begin(), out.end(), [&](const cv::Point2d& o) {
-      return std::abs(o.x - c.p.x) < dense && std::abs(o.y - c.p.y) < dense;
-    });
-    if (!crowded) out.emplace_back(c.p.x, c.p.y);
-  }
+  if (dense < config_.min_distance_px) take(dense);
   if (masked != nullptr) {
     // The strongest of the masked maxima, spaced as the chosen ones are.
     std::sort(glinting.begin(), glinting.end(),
@@ -717,9 +710,13 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
     ratios.reserve(features_.size());
     for (size_t i = 0; i < features_.size(); ++i) {
       const Feature& f = features_[i];
-      const int half = kHalf + config_.specular_margin_px;  // sheen beside the patch pulls too
-      const double ml = regionMean(left, f.left, half), mr = regionMean(right, f.right, half);
-      const bool use = i >= first_new || f.status == FeatureStatus::kOk;
+      // The patch with its glint margin (sheen beside the patch pulls too): a new feature's
+      // means were taken when it was matched (mean0), a kept one's are measured in this pair.
+      const int half = kHalf + config_.specular_margin_px;
+      const bool is_new = i >= first_new;
+      const double ml = is_new ? states_[i].mean0[0] : regionMean(left, f.left, half);
+      const double mr = is_new ? states_[i].mean0[1] : regionMean(right, f.right, half);
+      const bool use = is_new || f.status == FeatureStatus::kOk;
       ratios.push_back(use && ml > 0.0 && mr > 0.0 ? mr / ml : 0.0);
     }
     std::vector<std::pair<double, double>> near;  // (distance, ratio)
@@ -1123,18 +1120,16 @@ void StereoTracker::motionGate() noexcept {
   // rejected, so that the order does not matter; the flags go in the status afterwards.
   const size_t n = features_.size();
   for (size_t i = 0; i < n; ++i) {
-    states_[i].motion_outlier = false;
-    if (features_[i].status != FeatureStatus::kOk) continue;
+    Feature& f = features_[i];
+    if (f.status != FeatureStatus::kOk) continue;
     cv::Vec2d pl, pr;
     if (!predict(i, pl, pr, n)) continue;
-    const cv::Vec2d off = (states_[i].right_track - pr) - (features_[i].left - pl);
-    states_[i].motion_outlier =
-        std::abs(off[0]) > config_.max_motion_px || std::abs(off[1]) > config_.max_motion_px;
+    const cv::Vec2d off = (states_[i].right_track - pr) - (f.left - pl);
+    if (std::abs(off[0]) > config_.max_motion_px || std::abs(off[1]) > config_.max_motion_px)
+      f.failed |= gateBit(Gate::kMotion);  // the status follows below (predict() reads it)
   }
-  for (size_t i = 0; i < n; ++i) {
-    if (!states_[i].motion_outlier) continue;
-    Feature& f = features_[i];
-    f.failed |= gateBit(Gate::kMotion);
+  for (Feature& f : features_) {
+    if (f.status != FeatureStatus::kOk || (f.failed & gateBit(Gate::kMotion)) == 0) continue;
     f.status = FeatureStatus::kOutlierSurface;
     f.gate = Gate::kMotion;
   }

@@ -269,9 +269,8 @@ class StereoTracker {
     // or for a later one, its position less its neighbours' motion since): the common epoch
     // the neighbours' motion is measured from.
     cv::Vec2d epoch_left, epoch_right;
-    bool seen = true;             // ok in the last pair: tracked from there; else predicted
-    int not_ok_pairs = 0;         // pairs since it was last ok
-    bool motion_outlier = false;  // motionGate()'s verdict in this pair
+    bool seen = true;      // ok in the last pair: tracked from there; else predicted
+    int not_ok_pairs = 0;  // pairs since it was last ok
   };
   // Detection: fresh (initialize) or filling around the features there are (redetect).
   Result<int> detect(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
