@@ -136,8 +136,10 @@ class ReplaySource final : public CameraSource {
       counters_.missing_triggers += m.trigger_seq - last_seq_ - 1;
     last_seq_ = m.trigger_seq;
     if (o_.pace == P::kRate) {
+      // Stamped with the trigger's time (due), as a hardware-triggered camera stamps the
+      // exposure, not the moment the copy ended: a slow first copy must not shorten the period.
       frame.trigger_seq = handed_;
-      frame.t_left_ns = frame.t_right_ns = rt::monotonicNs();
+      frame.t_left_ns = frame.t_right_ns = due;
     } else {
       frame.trigger_seq = m.trigger_seq + loops_;
       frame.t_left_ns = m.t_left_ns;

@@ -90,7 +90,8 @@ struct ReplayOptions {
   enum class Pace {
     kRecorded,  // the recorded timestamps
     kFast,      // as fast as possible
-    kRate,      // at `fps`, restamped with the time each pair is handed over, as a live camera
+    kRate,      // at `fps`, restamped with each pair's trigger time, as a live camera stamps
+                // its exposure
   } pace = Pace::kRecorded;
   double fps = 30.0;
   bool loop = false;
