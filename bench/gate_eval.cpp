@@ -34,6 +34,9 @@ int main(int argc, char** argv) try {
       ->capture_default_str();
   app.add_option("--dmax", dmax, "Largest disparity of the photographs, px")->capture_default_str();
   double right_px = 0.3;
+  std::string samples_csv;
+  app.add_option("--samples-csv", samples_csv,
+                 "Write every ok sample's 3D and image errors to this CSV (the scene)");
   app.add_option("--right-px", right_px,
                  "The scene: a match within this of the truth in both views is right")
       ->capture_default_str();
@@ -50,6 +53,12 @@ int main(int argc, char** argv) try {
   app.add_option("--min-stereo-ncc", config.min_stereo_ncc, "Stereo NCC gate")
       ->capture_default_str();
   app.add_option("--max-sheen", config.max_sheen, "Sheen gate")->capture_default_str();
+  app.add_option("--max-epipolar-spread", config.max_epipolar_spread_px,
+                 "Epipolar gate against the neighbours' offset, px")
+      ->capture_default_str();
+  app.add_option("--stereo-ramp", config.stereo_ramp,
+                 "The stereo match models an intensity ramp across the patch (true/false)")
+      ->capture_default_str();
   app.add_option("--min-nmi", config.min_nmi, "NMI gate")->capture_default_str();
   app.add_option("--max-epipolar", config.max_epipolar_px, "Epipolar gate, px")
       ->capture_default_str();
@@ -125,6 +134,7 @@ int main(int argc, char** argv) try {
   sim::SceneRunOptions opt;
   opt.pairs = pairs;
   opt.right_px = right_px;
+  opt.samples_csv = samples_csv;
   opt.tracker = config;
   auto run = sim::runScene(s, opt);
   if (!run) {
@@ -140,19 +150,21 @@ int main(int argc, char** argv) try {
   fmt::print(
       "{}: {} pairs; first pair {} ok of ceiling {}; textured grid cells {}, of them without a "
       "feature {}; detections {}; distinct ids {}; pairs with >= 50 ok {:.1f} %\n"
-      "  instrument: covers {:.1f} % of the ROI from either camera while it rests; {} features "
-      "hidden then, {} back under their ids 1 s after it left ({:.1f} %)\n"
+      "  instrument: covers {:.1f} % of the ROI from either camera while it rests ({:.1f} % of the "
+      "left ROI box); {} features hidden then, {} back under their ids 1 s after it left ({:.1f} "
+      "%)\n"
       "  accuracy: {} ok samples, 3D RMS {:.4f} mm, max {:.3f} mm, above 0.5 mm {}; mean "
       "displacement error {:.4f} mm RMS per axis; breathing amplitude off by {:.2f} %, cardiac "
       "{:.2f} %\n  time per tracked pair: track {:.3f} ms (re-acquisition included; {:.1f} ok, {} "
       "features), stereo refresh after it {:.3f} ms\n",
       spec->name, run->pairs, run->first_ok, config.max_features, run->textured_cells,
       run->empty_textured_cells, run->detections, run->distinct_ids,
-      100.0 * at50 / std::max(1, run->pairs), 100.0 * run->instrument_covers, run->hidden,
-      run->back_within_1s, 100.0 * run->back_within_1s / std::max(1, run->hidden), run->ok_samples,
-      run->rms_3d_mm, run->max_3d_mm, run->above_half_mm, run->displacement_rms_mm,
-      100.0 * run->breathing_error, 100.0 * run->cardiac_error, run->ms_per_pair_tracking,
-      run->mean_ok, config.max_features, run->ms_per_pair_refresh);
+      100.0 * at50 / std::max(1, run->pairs), 100.0 * run->instrument_covers,
+      100.0 * run->instrument_covers_box, run->hidden, run->back_within_1s,
+      100.0 * run->back_within_1s / std::max(1, run->hidden), run->ok_samples, run->rms_3d_mm,
+      run->max_3d_mm, run->above_half_mm, run->displacement_rms_mm, 100.0 * run->breathing_error,
+      100.0 * run->cardiac_error, run->ms_per_pair_tracking, run->mean_ok, config.max_features,
+      run->ms_per_pair_refresh);
   return 0;
 } catch (const std::exception& e) {
   std::fprintf(stderr, "gate_eval: internal error: %s\n", e.what());

@@ -4,6 +4,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <fstream>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <set>
@@ -284,6 +285,21 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
       }
     }
     run.instrument_covers = static_cast<double>(covered) / static_cast<double>(inside);
+    // The same over the left ROI, the box features are detected in (its corners lie outside
+    // the circle), pixel by pixel in the left image.
+    inside = covered = 0;
+    const cv::Rect& box = config.roi.left;
+    for (int y = box.y; y < box.y + box.height; y += 2) {
+      for (int x = box.x; x < box.x + box.width; x += 2) {
+        cv::Vec2d uv;
+        if (!scene->materialAt(rig, cv::Vec2d(x, y), mid, uv)) continue;
+        ++inside;
+        const cv::Vec3d p = scene->position(uv[0], uv[1], mid);
+        if (scene->occluded(p, centre_l, mid) || scene->occluded(p, centre_r, mid)) ++covered;
+      }
+    }
+    run.instrument_covers_box =
+        inside > 0 ? static_cast<double>(covered) / static_cast<double>(inside) : 0.0;
   }
   struct Truth {
     cv::Vec2d uv;
@@ -291,6 +307,12 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
     bool found = false;
   };
   std::map<int, Truth> truth;
+  std::ofstream samples;
+  if (!options.samples_csv.empty()) {
+    samples.open(options.samples_csv);
+    if (!samples) return std::unexpected(vision::Error{"cannot write " + options.samples_csv});
+    samples << "pair,t,id,ex_mm,ey_mm,ez_mm,elx_px,ely_px,erx_px,ery_px,gate,visible,clear\n";
+  }
   std::set<int> ids;
   std::set<int> ok_before, hidden, back;
   std::vector<double> err3, errd;
@@ -388,8 +410,31 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
                           cv::norm(rig.projectRight(p) - f.judged_right) <= options.right_px;
         run.tracking.add(f.failed, accepted, good, true);
       }
-      if (!accepted) continue;
+      if (!accepted) {
+        if (samples.is_open()) {
+          // Not ok: why (the gate), whether it was visible, and whether its whole video patch
+          // was (the corners of its 23x23 patch in the left view, where the truth knows them).
+          int clear = 1;
+          for (const cv::Vec2d& off :
+               {cv::Vec2d(-11, -11), cv::Vec2d(11, -11), cv::Vec2d(-11, 11), cv::Vec2d(11, 11)}) {
+            cv::Vec2d uv;
+            if (scene->materialAt(rig, rig.projectLeft(p) + off, t, uv) &&
+                !visible(scene->position(uv[0], uv[1], t)))
+              clear = 0;
+          }
+          samples << fmt::format("{},{:.4f},{},,,,,,,,{},{},{}\n", i, t, f.id,
+                                 static_cast<int>(f.gate), visible(p) ? 1 : 0, clear);
+        }
+        continue;
+      }
       const double e = cv::norm(f.point - p);
+      if (samples.is_open()) {
+        const cv::Vec3d d = f.point - p;
+        const cv::Vec2d el = f.left - rig.projectLeft(p), er = f.right - rig.projectRight(p);
+        samples << fmt::format(
+            "{},{:.4f},{},{:.5f},{:.5f},{:.5f},{:.4f},{:.4f},{:.4f},{:.4f},0,1,1\n", i, t, f.id,
+            d[0], d[1], d[2], el[0], el[1], er[0], er[1]);
+      }
       err3.push_back(e);
       run.max_3d_mm = std::max(run.max_3d_mm, e);
       if (e > 0.5) ++run.above_half_mm;

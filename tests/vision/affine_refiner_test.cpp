@@ -84,6 +84,51 @@ TEST(AffineRefiner, RecoversAKnownWarpThroughGainAndBias) {
   EXPECT_LT(rms, 0.012);
 }
 
+// A sheen lobe or a shadow's edge in one view only: an intensity ramp across the patch. Gain and
+// bias do not model it and the match slides along the ramp; the ramp model (project-out) does.
+TEST(AffineRefiner, AnIntensityRampInOneViewDoesNotMoveTheRampModelsMatch) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  double sum2_plain = 0.0, sum2_ramp = 0.0, worst_ramp = 0.0, ncc_plain = 0.0, ncc_ramp = 0.0;
+  constexpr int kTrials = 30;
+  for (int trial = 0; trial < kTrials; ++trial) {
+    const Texture tex(static_cast<unsigned>(trial + 101));
+    const cv::Mat src8 = tex.image([](const cv::Vec2d& p) { return p; });
+    const cv::Vec2d centre(101.0 + u(rng), 99.0 + u(rng));
+    cv::Mat moved8 = tex.image(
+        [&](const cv::Vec2d& p) { return cv::Vec2d(100, 100) + (p - centre); }, 0.9, 10.0);
+    // 1.5 grey levels per px in a random direction: 21 levels across the 15 px template.
+    const double dir = CV_PI * u(rng);
+    for (int y = 0; y < moved8.rows; ++y) {
+      for (int x = 0; x < moved8.cols; ++x) {
+        const double ramp = 1.5 * (std::cos(dir) * (x - 100) + std::sin(dir) * (y - 100));
+        moved8.at<uint8_t>(y, x) = cv::saturate_cast<uint8_t>(moved8.at<uint8_t>(y, x) + ramp);
+      }
+    }
+    const AffineWarp start{{std::round(centre[0]), std::round(centre[1])}, cv::Matx22d::eye()};
+    for (const bool ramp : {false, true}) {
+      AffineTemplate t;
+      ASSERT_TRUE(t.set(src8.data, src8.step, src8.cols, src8.rows,
+                        {{100.0, 100.0}, cv::Matx22d::eye()}, ramp));
+      const AffineResult r = t.refine(moved8.data, moved8.step, moved8.cols, moved8.rows, start);
+      ASSERT_TRUE(r.converged) << trial << " ramp " << ramp;
+      const double e = cv::norm(r.warp.centre - centre);
+      (ramp ? sum2_ramp : sum2_plain) += e * e;
+      (ramp ? ncc_ramp : ncc_plain) += r.ncc / kTrials;
+      if (ramp) worst_ramp = std::max(worst_ramp, e);
+    }
+  }
+  const double plain = std::sqrt(sum2_plain / kTrials), ramp = std::sqrt(sum2_ramp / kTrials);
+  std::cout << "a 1.5 grey/px ramp in the moved view, 30 patches: centre error RMS " << plain
+            << " px with gain and bias, " << ramp << " px with the ramp modelled (worst "
+            << worst_ramp << "); mean NCC " << ncc_plain << " -> " << ncc_ramp << "\n";
+  // Measured: 0.158 px unmodelled, 0.012 px (worst 0.036) modelled; mean NCC 0.978 -> 0.9998.
+  EXPECT_LT(ramp, 0.02);
+  EXPECT_LT(worst_ramp, 0.05);
+  EXPECT_GT(plain, 5.0 * ramp);
+  EXPECT_GT(ncc_ramp, ncc_plain);
+}
+
 TEST(AffineRefiner, RefusesFlatPatchesAndTheBorder) {
   const cv::Mat flat(50, 50, CV_8UC1, cv::Scalar(100));
   AffineTemplate t;

@@ -178,6 +178,14 @@ TEST(StereoRig, EpipolarDistanceMeasuresAVerticalOffset) {
   const cv::Vec2d e = rig.epipolarDistances(rig.projectLeft(p), r);
   EXPECT_NEAR(e[0], 0.75, 1e-9);
   EXPECT_NEAR(e[1], 0.75, 1e-9);
+  // Signed: below the row and above it differ in sign, the same for a neighbouring pixel.
+  const double below = rig.epipolarOffset(rig.projectLeft(p), r);
+  EXPECT_NEAR(std::abs(below), 0.75, 1e-9);
+  r[1] -= 1.5;
+  EXPECT_NEAR(rig.epipolarOffset(rig.projectLeft(p), r), -below, 1e-9);
+  const cv::Vec3d q(9, -4, 455);
+  EXPECT_NEAR(rig.epipolarOffset(rig.projectLeft(q), rig.projectRight(q) + cv::Vec2d(0.3, 0.75)),
+              below, 1e-9);
 }
 
 }  // namespace

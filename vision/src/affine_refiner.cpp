@@ -120,10 +120,31 @@ void meanSpread(const std::array<float, kAffinePixels>& p, double& mean, double&
   spread = std::sqrt(std::max(0.0, s2 / kAffinePixels - mean * mean));
 }
 
+// Sum of x^2 (and of y^2) over the template's grid, x in [-kAffineHalf, kAffineHalf].
+// (The sum of squares 1..n is n (n + 1) (2n + 1) / 6, an integer.)
+constexpr int kSquares = kAffineHalf * (kAffineHalf + 1) * (2 * kAffineHalf + 1) / 6;
+constexpr double kRampNorm = kAffineSide * 2.0 * kSquares;
+
+// The patch's ramp-free spread: its variance less what the x and y ramps explain.
+double rampFreeSpread(const std::array<float, kAffinePixels>& p, double mean,
+                      double spread) noexcept {
+  double sx = 0.0, sy = 0.0;
+  size_t k = 0;
+  for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
+    for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
+      const double v = p[k] - mean;
+      sx += x * v;
+      sy += y * v;
+    }
+  }
+  return std::sqrt(
+      std::max(0.0, spread * spread - (sx * sx + sy * sy) / kRampNorm / kAffinePixels));
+}
+
 }  // namespace
 
 bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int height,
-                         const AffineWarp& warp) noexcept {
+                         const AffineWarp& warp, bool ramp) noexcept {
   // The warped patch with one sample of margin: the template is its interior, the gradients
   // its central differences (the samples one template pixel away).
   constexpr int kBig = kAffineSide + 2;
@@ -137,7 +158,6 @@ bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int hei
     return big[static_cast<size_t>(y + kAffineHalf + 1) * kBig +
                static_cast<size_t>(x + kAffineHalf + 1)];
   };
-  cv::Matx<double, 6, 6> h = cv::Matx<double, 6, 6>::zeros();
   int k = 0;
   for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
     for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
@@ -147,16 +167,47 @@ bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int hei
       // d(warp)/d(params) at identity, params = (da00, da10, da01, da11, dtx, dty).
       const double sd[6] = {gx * x, gy * x, gx * y, gy * y, gx, gy};
       auto& row = sd_[static_cast<size_t>(k)];
-      for (int i = 0; i < 6; ++i) {
-        row[static_cast<size_t>(i)] = static_cast<float>(sd[i]);
-        for (int j = i; j < 6; ++j) h(i, j) += sd[i] * sd[j];
+      for (int i = 0; i < 6; ++i) row[static_cast<size_t>(i)] = static_cast<float>(sd[i]);
+    }
+  }
+  ramp_ = ramp;
+  if (ramp) {
+    // Project-out: the steepest-descent images made orthogonal to the constant and the two
+    // ramps, so that b = SD^T e ignores whatever of the residual those explain.
+    std::array<double, 6> m{}, rx{}, ry{};
+    k = 0;
+    for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
+      for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
+        for (size_t i = 0; i < 6; ++i) {
+          const double v = sd_[static_cast<size_t>(k)][i];
+          m[i] += v;
+          rx[i] += x * v;
+          ry[i] += y * v;
+        }
       }
+    }
+    k = 0;
+    for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
+      for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
+        for (size_t i = 0; i < 6; ++i) {
+          sd_[static_cast<size_t>(k)][i] -=
+              static_cast<float>(m[i] / kAffinePixels + (rx[i] * x + ry[i] * y) / kRampNorm);
+        }
+      }
+    }
+  }
+  cv::Matx<double, 6, 6> h = cv::Matx<double, 6, 6>::zeros();
+  for (const auto& row : sd_) {
+    for (int i = 0; i < 6; ++i) {
+      for (int j = i; j < 6; ++j)
+        h(i, j) += double(row[static_cast<size_t>(i)]) * row[static_cast<size_t>(j)];
     }
   }
   for (int i = 0; i < 6; ++i) {
     for (int j = 0; j < i; ++j) h(i, j) = h(j, i);
   }
   meanSpread(t_, mean_, spread_);
+  if (ramp) spread_ = rampFreeSpread(t_, mean_, spread_);
   if (spread_ < 1.0) return false;
   bool ok = false;
   h_inv_ = h.inv(cv::DECOMP_CHOLESKY, &ok);
@@ -174,15 +225,22 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
     if (!warpedPatch<kAffineSide>(image, stride, width, height, res.warp, patch.data())) return res;
     double mean = 0, spread = 0;
     meanSpread(patch, mean, spread);
+    if (ramp_) spread = rampFreeSpread(patch, mean, spread);
     if (spread < 1e-6) return res;
     const double gain = spread_ / spread;
     cv::Vec<double, 6> b = cv::Vec<double, 6>::all(0.0);
-    double sse = 0.0;
-    for (size_t k = 0; k < static_cast<size_t>(kAffinePixels); ++k) {
-      const double e = (patch[k] - mean) * gain + mean_ - t_[k];
-      sse += e * e;
-      for (size_t i = 0; i < 6; ++i) b[static_cast<int>(i)] += sd_[k][i] * e;
+    double sse = 0.0, ex = 0.0, ey = 0.0;
+    size_t k = 0;
+    for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
+      for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
+        const double e = (patch[k] - mean) * gain + mean_ - t_[k];
+        sse += e * e;
+        ex += x * e;
+        ey += y * e;
+        for (size_t i = 0; i < 6; ++i) b[static_cast<int>(i)] += sd_[k][i] * e;
+      }
     }
+    if (ramp_) sse = std::max(0.0, sse - (ex * ex + ey * ey) / kRampNorm);
     res.rms = std::sqrt(sse / kAffinePixels);
     res.ncc = 1.0 - sse / (2.0 * kAffinePixels * spread_ * spread_);
     const cv::Vec<double, 6> dp = h_inv_ * b;

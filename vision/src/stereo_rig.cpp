@@ -40,6 +40,16 @@ cv::Vec2d StereoRig::epipolarDistances(const cv::Vec2d& left_px,
   return {d_right, d_left};
 }
 
+double StereoRig::epipolarOffset(const cv::Vec2d& left_px,
+                                 const cv::Vec2d& right_px) const noexcept {
+  const cv::Vec2d ul = left.undistortPixel(left_px);
+  const cv::Vec2d ur = right.undistortPixel(right_px);
+  const cv::Vec3d line = fundamental() * cv::Vec3d(ul[0], ul[1], 1.0);
+  const double sign = std::abs(line[1]) >= std::abs(line[0]) ? (line[1] < 0 ? -1.0 : 1.0)
+                                                             : (line[0] < 0 ? -1.0 : 1.0);
+  return sign * line.dot(cv::Vec3d(ur[0], ur[1], 1.0)) / std::hypot(line[0], line[1]);
+}
+
 cv::Vec3d midpoint(const Ray& a, const Ray& b) noexcept {
   // (I - g1 g1^T)(x - p1) + (I - g2 g2^T)(x - p2) = 0  =>  A x = c
   const cv::Matx33d i = cv::Matx33d::eye();

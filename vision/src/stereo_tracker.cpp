@@ -586,7 +586,8 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
           ar = stereo.refine(right.data, right.step, right.cols, right.rows, c.right);
       } else {
         AffineTemplate stereo;
-        if (stereo.set(left.data, left.step, left.cols, left.rows, {c.left, cv::Matx22d::eye()})) {
+        if (stereo.set(left.data, left.step, left.cols, left.rows, {c.left, cv::Matx22d::eye()},
+                       config_.stereo_ramp)) {
           ar = stereo.refine(right.data, right.step, right.cols, right.rows,
                              {c.right, cv::Matx22d::eye()}, kDetectIterations, kDetectEpsilonPx);
         }
@@ -705,9 +706,12 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   // a tenth of a pixel or more (0.1-0.2 mm of depth): such features are not tracked.
   // Measured in this pair for the new features and the ok ones already there (the gains drift,
   // so only ratios of one pair compare). Judges the features from `from` on.
+  // Epipolar spread: the same nearest features' median signed distance from the epipolar
+  // line is this rig's calibration error there; a match off it by more is wrong.
   const auto sheenGate = [&](size_t from) {
-    std::vector<double> ratios;
+    std::vector<double> ratios, offsets;
     ratios.reserve(features_.size());
+    offsets.reserve(features_.size());
     for (size_t i = 0; i < features_.size(); ++i) {
       const Feature& f = features_[i];
       // The patch with its glint margin (sheen beside the patch pulls too): a new feature's
@@ -718,29 +722,45 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
       const double mr = is_new ? states_[i].mean0[1] : regionMean(right, f.right, half);
       const bool use = is_new || f.status == FeatureStatus::kOk;
       ratios.push_back(use && ml > 0.0 && mr > 0.0 ? mr / ml : 0.0);
+      offsets.push_back(rig_.epipolarOffset(f.left, f.right));
     }
-    std::vector<std::pair<double, double>> near;  // (distance, ratio)
-    std::vector<double> local;
+    std::vector<std::pair<double, size_t>> near;  // (distance, feature)
+    std::vector<double> local, local_offsets;
+    std::vector<double> spread(features_.size(), 0.0);
     for (size_t i = from; i < features_.size(); ++i) {
       near.clear();
       for (size_t j = 0; j < features_.size(); ++j) {
         if (j != i && ratios[j] > 0.0)
-          near.emplace_back(cv::norm(features_[j].left - features_[i].left), ratios[j]);
+          near.emplace_back(cv::norm(features_[j].left - features_[i].left), j);
       }
       const size_t k = std::min<size_t>(near.size(), kGainNeighbours);
       std::partial_sort(near.begin(), near.begin() + static_cast<long>(k), near.end());
       local.clear();
-      for (size_t j = 0; j < k; ++j) local.push_back(near[j].second);
-      std::nth_element(local.begin(), local.begin() + static_cast<long>(k / 2), local.end());
+      local_offsets.clear();
+      for (size_t j = 0; j < k; ++j) {
+        local.push_back(ratios[near[j].second]);
+        local_offsets.push_back(offsets[near[j].second]);
+      }
+      const auto mid = static_cast<long>(k / 2);
+      std::nth_element(local.begin(), local.begin() + mid, local.end());
+      std::nth_element(local_offsets.begin(), local_offsets.begin() + mid, local_offsets.end());
       states_[i].view_gain = k > 0 ? local[k / 2] : ratios[i];
+      spread[i] = k > 0 ? offsets[i] - local_offsets[k / 2] : 0.0;
     }
     size_t kept = from;
     for (size_t i = from; i < features_.size(); ++i) {
+      const auto reject = [&](Gate g, FeatureStatus st) {
+        candidates_[candidate_of_feature[i]].status = st;
+        candidates_[candidate_of_feature[i]].gate = g;
+        candidates_[candidate_of_feature[i]].failed |= gateBit(g);
+      };
       if (!(states_[i].view_gain > 0.0) ||
           std::abs(ratios[i] / states_[i].view_gain - 1.0) > config_.max_sheen) {
-        candidates_[candidate_of_feature[i]].status = FeatureStatus::kOccluded;
-        candidates_[candidate_of_feature[i]].gate = Gate::kSheen;
-        candidates_[candidate_of_feature[i]].failed |= gateBit(Gate::kSheen);
+        reject(Gate::kSheen, FeatureStatus::kOccluded);
+        continue;
+      }
+      if (std::abs(spread[i]) > config_.max_epipolar_spread_px) {
+        reject(Gate::kEpipolar, FeatureStatus::kOutlierEpipolar);
         continue;
       }
       features_[kept] = features_[i];
@@ -1085,7 +1105,7 @@ int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noex
       if (refresh_shift_.set(left.data, left.step, left.cols, left.rows, f.left))
         ar = refresh_shift_.refine(right.data, right.step, right.cols, right.rows, f.right);
     } else if (refresh_affine_.set(left.data, left.step, left.cols, left.rows,
-                                   {f.left, cv::Matx22d::eye()})) {
+                                   {f.left, cv::Matx22d::eye()}, config_.stereo_ramp)) {
       ar = refresh_affine_.refine(right.data, right.step, right.cols, right.rows,
                                   {f.right, s.stereo_warp}, 20, 0.01);
     }

@@ -100,6 +100,9 @@ struct SceneRunOptions {
   // and 0.3 px of disparity is 0.2 mm of depth here: a bias the accuracy aims would not allow.
   double right_px = 0.3;
   vision::TrackerConfig tracker;  // evaluate_gates is set by the run
+  // When set, every ok sample's error goes to this CSV (pair, t, id, 3D error in mm in the
+  // left camera's frame, and the left and right image errors in px): where the error lives.
+  std::string samples_csv;
 };
 
 struct SceneRun {
@@ -110,6 +113,7 @@ struct SceneRun {
   // The share of the ROI's surface (the circle of roi_radius_mm) the instrument hides from
   // either camera while it rests (mid-rest; 0 without an instrument).
   double instrument_covers = 0.0;
+  double instrument_covers_box = 0.0;  // the same over the left ROI box, in the left image
   // The first detection on a 5x5 grid over the left ROI: cells with a corner that has a right
   // match (texture a feature could be on; masked corners included), and those of them without
   // an ok feature.

@@ -47,8 +47,12 @@ class AffineTemplate {
  public:
   // Samples the template around `centre` (sub-pixel, bilinear) of an 8-bit image with the
   // given warp (identity for a fresh template). False near the border or on a flat patch.
-  bool set(const uint8_t* image, size_t stride, int width, int height,
-           const AffineWarp& warp) noexcept;
+  // With `ramp`, an intensity ramp across the patch (x and y) is modelled as well as gain and
+  // bias, by projecting it out (Baker & Matthews' project-out: the Hessian stays constant): a
+  // specular lobe or a shadow's edge adds such a ramp to one view and not the other, and unmodelled
+  // it pulls the match along its gradient. The NCC is then the ramp-free patches' correlation.
+  bool set(const uint8_t* image, size_t stride, int width, int height, const AffineWarp& warp,
+           bool ramp = false) noexcept;
 
   // Refines `start` on `image`: at most `max_iterations`, stops when the update moves the
   // patch corners by less than `epsilon_px`.
@@ -64,6 +68,7 @@ class AffineTemplate {
   cv::Matx<double, 6, 6> h_inv_;
   double mean_ = 0.0;
   double spread_ = 0.0;
+  bool ramp_ = false;
 };
 
 // The same refinement for a pure translation, for video matching: a camera's frame-0

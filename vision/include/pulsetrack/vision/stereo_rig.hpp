@@ -48,6 +48,10 @@ struct StereoRig {
   // both on undistorted pixel coordinates; returns {left->right line distance, right->left}.
   [[nodiscard]] cv::Vec2d epipolarDistances(const cv::Vec2d& left_px,
                                             const cv::Vec2d& right_px) const noexcept;
+  // The first of those, signed: positive on the side of the line its normal points to, the
+  // normal's larger component taken positive (the same side for neighbouring pixels).
+  [[nodiscard]] double epipolarOffset(const cv::Vec2d& left_px,
+                                      const cv::Vec2d& right_px) const noexcept;
 };
 
 // Eq. (3): the point midway along the shortest segment between two rays, solved in closed form.

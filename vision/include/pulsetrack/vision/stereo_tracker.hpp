@@ -122,6 +122,13 @@ struct TrackerConfig {
   // The stereo match after the affine refinement: the two views of a feature in sheen (below
   // the glint threshold, but different per view) agree less than tissue does.
   double min_stereo_ncc = 0.94;
+  // The stereo match (detection and refresh) models an intensity ramp across the patch as well
+  // as gain and bias (AffineTemplate's project-out: a 1.5 grey/px ramp in one view moves the
+  // match 0.158 px unmodelled, 0.012 px modelled). Off: on the scenes it did not pay. cortex-hard
+  // 3D RMS 0.0363 -> 0.0350 mm but pairs with >= 50 ok 75.0 -> 73.5 %, cortex-60s 0.0276 ->
+  // 0.0273 mm, static glossy cortex 0.027 -> 0.029 mm (worst feature 0.051 -> 0.064): the
+  // sheen there is a lobe, not a ramp, and the ramp-free NCC lets more of it past the gates.
+  bool stereo_ramp = false;
   // A patch's brightness (with specular_margin_px around it) may differ between the views by at
   // most this fraction beyond the cameras' local gain ratio: more is view-dependent shine
   // (sheen), which moves the stereo match.
@@ -139,6 +146,12 @@ struct TrackerConfig {
   double min_block_ncc = 0.5;
   double min_nmi = 0.25;
   double max_epipolar_px = 1.0;
+  // Detection: a match's signed distance from its epipolar line may differ from the median of
+  // its nearest features' by at most this (px). A real rig's calibration leaves each pixel's
+  // line off by up to a few tenths of a pixel, but smoothly over the image, so neighbours share
+  // the offset; a wrong match on similar texture (0.26-0.38 px off on cortex-60s, 0.14-0.27 mm
+  // of depth for good) does not share it.
+  double max_epipolar_spread_px = 0.15;
   double max_surface_mm = 2.0;      // distance to the fitted parabola
   double surface_mad_factor = 6.0;  // ... and at most this many MADs
   // Sub-pixel refinement after the NCC peak: affine for the stereo match (the two views
