@@ -36,7 +36,8 @@ int main(int argc, char** argv) try {
   double right_px = 0.3;
   std::string samples_csv;
   app.add_option("--samples-csv", samples_csv,
-                 "Write every ok sample's 3D and image errors to this CSV (the scene)");
+                 "Write every feature of every pair to this CSV: an ok one's 3D and image errors, "
+                 "another's gate and visibility (the scene)");
   app.add_option("--right-px", right_px,
                  "The scene: a match within this of the truth in both views is right")
       ->capture_default_str();
@@ -45,54 +46,39 @@ int main(int argc, char** argv) try {
   app.add_flag("--no-photos", no_photos, "The scene only");
   // The thresholds, to sweep them (defaults: TrackerConfig's).
   vision::TrackerConfig config;
-  app.add_option("--specular-threshold", config.specular_threshold, "Glint grey level")
-      ->capture_default_str();
-  app.add_option("--specular-margin", config.specular_margin_px, "Glint margin, px")
-      ->capture_default_str();
-  app.add_option("--min-ncc", config.min_ncc, "NCC gate")->capture_default_str();
-  app.add_option("--min-stereo-ncc", config.min_stereo_ncc, "Stereo NCC gate")
-      ->capture_default_str();
-  app.add_option("--max-sheen", config.max_sheen, "Sheen gate")->capture_default_str();
-  app.add_option("--max-epipolar-spread", config.max_epipolar_spread_px,
-                 "Epipolar gate against the neighbours' offset, px")
-      ->capture_default_str();
-  app.add_option("--stereo-ramp", config.stereo_ramp,
-                 "The stereo match models an intensity ramp across the patch (true/false)")
-      ->capture_default_str();
-  app.add_option("--min-nmi", config.min_nmi, "NMI gate")->capture_default_str();
-  app.add_option("--max-epipolar", config.max_epipolar_px, "Epipolar gate, px")
-      ->capture_default_str();
-  app.add_option("--max-ncc-drop", config.max_ncc_drop, "NCC drop gate")->capture_default_str();
-  app.add_option("--min-distance", config.min_distance_px, "Corners at least this far apart, px")
-      ->capture_default_str();
-  app.add_option("--sensitivity-min", config.sensitivity_min,
-                 "Weakest corner, fraction of the strongest Harris response")
-      ->capture_default_str();
-  app.add_option("--min-isotropy", config.min_isotropy, "Corner isotropy gate")
-      ->capture_default_str();
-  app.add_option("--min-fill", config.min_fill,
-                 "Detection matches more corners while fewer than this share of the ceiling pass")
-      ->capture_default_str();
-  app.add_option("--max-motion", config.max_motion_px,
-                 "Motion gate: disparity change beyond the neighbours', px")
-      ->capture_default_str();
-  app.add_option("--min-block-ncc", config.min_block_ncc,
-                 "Depth-edge gate: the template's corner blocks' NCC at the match")
-      ->capture_default_str();
-  app.add_option("--grid", config.grid_cols, "Detection grid: cells per side")
-      ->capture_default_str();
-  app.add_option(
-         "--glint-excess", config.glint_excess,
-         "Tracking glint gate: grey levels over the gain-scaled brightest pixel at detection")
-      ->capture_default_str();
-  app.add_option("--dark-delta", config.dark_delta,
-                 "Corners darker than their neighbourhood by at least this, grey levels")
-      ->capture_default_str();
-  app.add_option("--dense-distance", config.dense_distance_px,
-                 "Corners between the spaced ones down to this spacing, px (after all of those)")
-      ->capture_default_str();
-  app.add_option("--max-left-right", config.max_left_right_px, "Left-right gate, px")
-      ->capture_default_str();
+  const auto sweep = [&app](const char* name, auto& value, const char* help) {
+    app.add_option(name, value, help)->capture_default_str();
+  };
+  sweep("--specular-threshold", config.specular_threshold, "Glint grey level");
+  sweep("--specular-margin", config.specular_margin_px, "Glint margin, px");
+  sweep("--min-ncc", config.min_ncc, "NCC gate");
+  sweep("--min-stereo-ncc", config.min_stereo_ncc, "Stereo NCC gate");
+  sweep("--max-sheen", config.max_sheen, "Sheen gate");
+  sweep("--max-epipolar-spread", config.max_epipolar_spread_px,
+        "Epipolar gate against the neighbours' offset, px");
+  sweep("--stereo-ramp", config.stereo_ramp,
+        "The stereo match models an intensity ramp across the patch (true/false)");
+  sweep("--min-nmi", config.min_nmi, "NMI gate");
+  sweep("--max-epipolar", config.max_epipolar_px, "Epipolar gate, px");
+  sweep("--max-ncc-drop", config.max_ncc_drop, "NCC drop gate");
+  sweep("--min-distance", config.min_distance_px, "Corners at least this far apart, px");
+  sweep("--sensitivity-min", config.sensitivity_min,
+        "Weakest corner, fraction of the strongest Harris response");
+  sweep("--min-isotropy", config.min_isotropy, "Corner isotropy gate");
+  sweep("--min-fill", config.min_fill,
+        "Detection matches more corners while fewer than this share of the ceiling pass");
+  sweep("--max-motion", config.max_motion_px,
+        "Motion gate: disparity change beyond the neighbours', px");
+  sweep("--min-block-ncc", config.min_block_ncc,
+        "Depth-edge gate: the template's corner blocks' NCC at the match");
+  sweep("--grid", config.grid_cols, "Detection grid: cells per side");
+  sweep("--glint-excess", config.glint_excess,
+        "Tracking glint gate: grey levels over the gain-scaled brightest pixel at detection");
+  sweep("--dark-delta", config.dark_delta,
+        "Corners darker than their neighbourhood by at least this, grey levels");
+  sweep("--dense-distance", config.dense_distance_px,
+        "Corners between the spaced ones down to this spacing, px (after all of those)");
+  sweep("--max-left-right", config.max_left_right_px, "Left-right gate, px");
   CLI11_PARSE(app, argc, argv);
   config.grid_rows = config.grid_cols;
 

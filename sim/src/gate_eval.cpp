@@ -9,6 +9,8 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 
+#include "pulsetrack/vision/affine_refiner.hpp"
+
 namespace pulsetrack::sim {
 
 using vision::FeatureStatus;
@@ -272,6 +274,10 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
   const double rest_from = in.start_s + ramp, rest_to = in.start_s + in.duration_s - ramp;
   const double gone = in.start_s + in.duration_s;
   SceneRun run;
+  // Seen by both cameras at time t (the instrument hides it from neither).
+  const auto seen = [&](const cv::Vec3d& p, double t) {
+    return !scene->occluded(p, centre_l, t) && !scene->occluded(p, centre_r, t);
+  };
 
   if (in.enabled) {
     const double mid = (rest_from + rest_to) / 2.0, r = options.roi_radius_mm;
@@ -280,8 +286,7 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
       for (double u = -r; u <= r; u += 0.25) {
         if (u * u + v * v > r * r) continue;
         ++inside;
-        const cv::Vec3d p = scene->position(u, v, mid);
-        if (scene->occluded(p, centre_l, mid) || scene->occluded(p, centre_r, mid)) ++covered;
+        if (!seen(scene->position(u, v, mid), mid)) ++covered;
       }
     }
     run.instrument_covers = static_cast<double>(covered) / static_cast<double>(inside);
@@ -294,8 +299,7 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
         cv::Vec2d uv;
         if (!scene->materialAt(rig, cv::Vec2d(x, y), mid, uv)) continue;
         ++inside;
-        const cv::Vec3d p = scene->position(uv[0], uv[1], mid);
-        if (scene->occluded(p, centre_l, mid) || scene->occluded(p, centre_r, mid)) ++covered;
+        if (!seen(scene->position(uv[0], uv[1], mid), mid)) ++covered;
       }
     }
     run.instrument_covers_box =
@@ -348,9 +352,7 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
       ok_sum += res.deformation.ok;
       ++tracked_pairs;
     }
-    const auto visible = [&](const cv::Vec3d& p) {
-      return !scene->occluded(p, centre_l, t) && !scene->occluded(p, centre_r, t);
-    };
+    const auto visible = [&](const cv::Vec3d& p) { return seen(p, t); };
     // Detection candidates.
     if (res.detected) {
       ++run.detections;
@@ -413,10 +415,12 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
       if (!accepted) {
         if (samples.is_open()) {
           // Not ok: why (the gate), whether it was visible, and whether its whole video patch
-          // was (the corners of its 23x23 patch in the left view, where the truth knows them).
+          // was (the corners of its patch in the left view, where the truth knows them).
           int clear = 1;
+          constexpr double kVideoHalf = vision::kShiftHalf;
           for (const cv::Vec2d& off :
-               {cv::Vec2d(-11, -11), cv::Vec2d(11, -11), cv::Vec2d(-11, 11), cv::Vec2d(11, 11)}) {
+               {cv::Vec2d(-kVideoHalf, -kVideoHalf), cv::Vec2d(kVideoHalf, -kVideoHalf),
+                cv::Vec2d(-kVideoHalf, kVideoHalf), cv::Vec2d(kVideoHalf, kVideoHalf)}) {
             cv::Vec2d uv;
             if (scene->materialAt(rig, rig.projectLeft(p) + off, t, uv) &&
                 !visible(scene->position(uv[0], uv[1], t)))

@@ -125,20 +125,24 @@ void meanSpread(const std::array<float, kAffinePixels>& p, double& mean, double&
 constexpr int kSquares = kAffineHalf * (kAffineHalf + 1) * (2 * kAffineHalf + 1) / 6;
 constexpr double kRampNorm = kAffineSide * 2.0 * kSquares;
 
-// The patch's ramp-free spread: its variance less what the x and y ramps explain.
-double rampFreeSpread(const std::array<float, kAffinePixels>& p, double mean,
-                      double spread) noexcept {
+// A patch's ramp moments (sum of x v and of y v over its pixels v): the x and y ramps it holds
+// are these over kRampNorm. (The grid is symmetric: the mean does not change them.)
+cv::Vec2d rampMoments(const std::array<float, kAffinePixels>& p) noexcept {
   double sx = 0.0, sy = 0.0;
   size_t k = 0;
   for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
     for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
-      const double v = p[k] - mean;
-      sx += x * v;
-      sy += y * v;
+      sx += x * static_cast<double>(p[k]);
+      sy += y * static_cast<double>(p[k]);
     }
   }
+  return {sx, sy};
+}
+
+// A patch's spread less what its ramps explain.
+double rampFreeSpread(double spread, const cv::Vec2d& moments) noexcept {
   return std::sqrt(
-      std::max(0.0, spread * spread - (sx * sx + sy * sy) / kRampNorm / kAffinePixels));
+      std::max(0.0, spread * spread - moments.dot(moments) / kRampNorm / kAffinePixels));
 }
 
 }  // namespace
@@ -207,7 +211,10 @@ bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int hei
     for (int j = 0; j < i; ++j) h(i, j) = h(j, i);
   }
   meanSpread(t_, mean_, spread_);
-  if (ramp) spread_ = rampFreeSpread(t_, mean_, spread_);
+  if (ramp) {
+    ramp_moments_ = rampMoments(t_);
+    spread_ = rampFreeSpread(spread_, ramp_moments_);
+  }
   if (spread_ < 1.0) return false;
   bool ok = false;
   h_inv_ = h.inv(cv::DECOMP_CHOLESKY, &ok);
@@ -225,22 +232,22 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
     if (!warpedPatch<kAffineSide>(image, stride, width, height, res.warp, patch.data())) return res;
     double mean = 0, spread = 0;
     meanSpread(patch, mean, spread);
-    if (ramp_) spread = rampFreeSpread(patch, mean, spread);
+    const cv::Vec2d moments = ramp_ ? rampMoments(patch) : cv::Vec2d();
+    if (ramp_) spread = rampFreeSpread(spread, moments);
     if (spread < 1e-6) return res;
     const double gain = spread_ / spread;
     cv::Vec<double, 6> b = cv::Vec<double, 6>::all(0.0);
-    double sse = 0.0, ex = 0.0, ey = 0.0;
-    size_t k = 0;
-    for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
-      for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
-        const double e = (patch[k] - mean) * gain + mean_ - t_[k];
-        sse += e * e;
-        ex += x * e;
-        ey += y * e;
-        for (size_t i = 0; i < 6; ++i) b[static_cast<int>(i)] += sd_[k][i] * e;
-      }
+    double sse = 0.0;
+    for (size_t k = 0; k < static_cast<size_t>(kAffinePixels); ++k) {
+      const double e = (patch[k] - mean) * gain + mean_ - t_[k];
+      sse += e * e;
+      for (size_t i = 0; i < 6; ++i) b[static_cast<int>(i)] += sd_[k][i] * e;
     }
-    if (ramp_) sse = std::max(0.0, sse - (ex * ex + ey * ey) / kRampNorm);
+    if (ramp_) {
+      // The residual's ramps (its moments follow from the two patches'), left out of the error.
+      const cv::Vec2d e = gain * moments - ramp_moments_;
+      sse = std::max(0.0, sse - e.dot(e) / kRampNorm);
+    }
     res.rms = std::sqrt(sse / kAffinePixels);
     res.ncc = 1.0 - sse / (2.0 * kAffinePixels * spread_ * spread_);
     const cv::Vec<double, 6> dp = h_inv_ * b;

@@ -24,6 +24,17 @@ cv::Matx33d StereoRig::fundamental() const noexcept {
   return right.k().inv().t() * essential() * left.k().inv();
 }
 
+namespace {
+
+// The signed distance of x from the line, the normal's larger component taken positive (so
+// that neighbouring points' lines, which turn little, give the same side the same sign).
+double signedDistance(const cv::Vec3d& line, const cv::Vec3d& x) noexcept {
+  const double major = std::abs(line[1]) >= std::abs(line[0]) ? line[1] : line[0];
+  return (major < 0 ? -1.0 : 1.0) * line.dot(x) / std::hypot(line[0], line[1]);
+}
+
+}  // namespace
+
 cv::Vec2d StereoRig::epipolarDistances(const cv::Vec2d& left_px,
                                        const cv::Vec2d& right_px) const noexcept {
   const cv::Vec2d ul = left.undistortPixel(left_px);
@@ -31,23 +42,15 @@ cv::Vec2d StereoRig::epipolarDistances(const cv::Vec2d& left_px,
   const cv::Matx33d f = fundamental();
   const cv::Vec3d xl(ul[0], ul[1], 1.0);
   const cv::Vec3d xr(ur[0], ur[1], 1.0);
-  const cv::Vec3d line_in_right = f * xl;  // x_r^T F x_l = 0
-  const cv::Vec3d line_in_left = f.t() * xr;
-  const double d_right =
-      std::abs(line_in_right.dot(xr)) / std::hypot(line_in_right[0], line_in_right[1]);
-  const double d_left =
-      std::abs(line_in_left.dot(xl)) / std::hypot(line_in_left[0], line_in_left[1]);
-  return {d_right, d_left};
+  // x_r^T F x_l = 0: F x_l is x_l's line in the right image, F^T x_r x_r's in the left.
+  return {std::abs(signedDistance(f * xl, xr)), std::abs(signedDistance(f.t() * xr, xl))};
 }
 
 double StereoRig::epipolarOffset(const cv::Vec2d& left_px,
                                  const cv::Vec2d& right_px) const noexcept {
   const cv::Vec2d ul = left.undistortPixel(left_px);
   const cv::Vec2d ur = right.undistortPixel(right_px);
-  const cv::Vec3d line = fundamental() * cv::Vec3d(ul[0], ul[1], 1.0);
-  const double sign = std::abs(line[1]) >= std::abs(line[0]) ? (line[1] < 0 ? -1.0 : 1.0)
-                                                             : (line[0] < 0 ? -1.0 : 1.0);
-  return sign * line.dot(cv::Vec3d(ur[0], ur[1], 1.0)) / std::hypot(line[0], line[1]);
+  return signedDistance(fundamental() * cv::Vec3d(ul[0], ul[1], 1.0), cv::Vec3d(ur[0], ur[1], 1.0));
 }
 
 cv::Vec3d midpoint(const Ray& a, const Ray& b) noexcept {

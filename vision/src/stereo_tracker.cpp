@@ -76,7 +76,7 @@ namespace {
 
 constexpr int kHalf = kAffineHalf;  // 15x15 templates
 constexpr int kSide = kAffineSide;
-constexpr size_t kGainNeighbours = 10;  // the sheen gate's local gain ratio
+constexpr size_t kGainNeighbours = 10;  // the neighbour gates: local gain ratio, epipolar offset
 // The stereo match's affine refinement at detection must settle to 1e-3 px of corner movement
 // in 20 steps. Measured (gate_eval, issue 14): at 0.01 px / 30 steps the not_converged gate's
 // false rejects on cortex-hard fell from 20 % to 8 % (within 1 px), but what it then let through
@@ -705,10 +705,11 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   // yet a glint makes one view's patch brighter, differently per view, and moves the match by
   // a tenth of a pixel or more (0.1-0.2 mm of depth): such features are not tracked.
   // Measured in this pair for the new features and the ok ones already there (the gains drift,
-  // so only ratios of one pair compare). Judges the features from `from` on.
+  // so only ratios of one pair compare).
   // Epipolar spread: the same nearest features' median signed distance from the epipolar
   // line is this rig's calibration error there; a match off it by more is wrong.
-  const auto sheenGate = [&](size_t from) {
+  // Both gates judge the features from `from` on against their neighbours.
+  const auto neighbourGates = [&](size_t from) {
     std::vector<double> ratios, offsets;
     ratios.reserve(features_.size());
     offsets.reserve(features_.size());
@@ -773,8 +774,9 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
     states_.resize(kept);
     candidate_of_feature.resize(kept);
   };
-  // Match in rounds: as many as the ceiling (or until fill), the sheen gate on them, and again
-  // from the next corner while fewer than min_fill of the ceiling passed both.
+  // Match in rounds: as many as the ceiling (or until fill), the neighbour gates (sheen, epipolar
+  // spread) on them, and again from the next corner while fewer than min_fill of the ceiling passed
+  // both.
   size_t next = 0;
   for (size_t judged = first_new;; judged = features_.size()) {
     for (; next < n_chosen; ++next) {
@@ -783,7 +785,7 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
       ++matched;
       match(chosen[next], false);
     }
-    sheenGate(judged);
+    neighbourGates(judged);
     if (next >= n_chosen || features_.size() - first_new >= fill_target) break;
   }
   for (size_t m = n_chosen; m < chosen.size(); ++m) match(chosen[m], true);  // evaluation only

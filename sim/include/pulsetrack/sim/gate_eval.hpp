@@ -100,8 +100,10 @@ struct SceneRunOptions {
   // and 0.3 px of disparity is 0.2 mm of depth here: a bias the accuracy aims would not allow.
   double right_px = 0.3;
   vision::TrackerConfig tracker;  // evaluate_gates is set by the run
-  // When set, every ok sample's error goes to this CSV (pair, t, id, 3D error in mm in the
-  // left camera's frame, and the left and right image errors in px): where the error lives.
+  // When set, every feature of every pair goes to this CSV: pair, t, id; for an ok one its 3D
+  // error in mm in the left camera's frame and its left and right image errors in px (where the
+  // error lives); for the others the gate, whether the truth saw it (visible) and whether its
+  // whole video patch was (clear).
   std::string samples_csv;
 };
 

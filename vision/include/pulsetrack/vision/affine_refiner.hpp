@@ -69,6 +69,7 @@ class AffineTemplate {
   double mean_ = 0.0;
   double spread_ = 0.0;
   bool ramp_ = false;
+  cv::Vec2d ramp_moments_;  // the template's x and y ramp moments (with ramp_)
 };
 
 // The same refinement for a pure translation, for video matching: a camera's frame-0
