@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <charconv>
+#include <cmath>
 #include <fstream>
 #include <sstream>
 
@@ -37,6 +38,11 @@ int CsvTable::column(std::initializer_list<const char*> names) const {
   return -1;
 }
 
+namespace {
+// A frame index (and a protocol's set, acquisition and ROI numbers) no recording reaches.
+constexpr int64_t kMaxFrame = (int64_t{1} << 31) - 1;
+}  // namespace
+
 vision::Result<double> CsvTable::number(size_t row, int col) const {
   const std::string& cell = rows[row][static_cast<size_t>(col)];
   double v = 0;
@@ -45,6 +51,18 @@ vision::Result<double> CsvTable::number(size_t row, int col) const {
     return fail(fmt::format("{}:{}: column '{}': '{}' is not a number", file, lines[row],
                             header[static_cast<size_t>(col)], cell));
   return v;
+}
+
+vision::Result<int64_t> CsvTable::integer(size_t row, int col, int64_t lo, int64_t hi) const {
+  auto v = number(row, col);
+  if (!v) return std::unexpected(v.error());
+  // Compared as doubles before the cast: a double past int64's range does not convert.
+  if (*v != std::floor(*v) || !(*v >= double(lo) && *v <= double(hi))) {
+    return fail(fmt::format("{}:{}: column '{}': '{}' is not a whole number from {} to {}", file,
+                            lines[row], header[static_cast<size_t>(col)],
+                            rows[row][static_cast<size_t>(col)], lo, hi));
+  }
+  return static_cast<int64_t>(*v);
 }
 
 vision::Result<CsvTable> readCsv(const std::filesystem::path& path) {
@@ -108,15 +126,23 @@ vision::Result<PoseSeries> readPoses(const std::filesystem::path& path) {
     }
     TimedPose p;
     if (c_frame >= 0) {
-      auto f = t.number(i, c_frame);
+      auto f = t.integer(i, c_frame, 0, kMaxFrame);
       if (!f) return std::unexpected(f.error());
       p.frame = static_cast<long>(*f);
     }
-    if (c_ns >= 0 || c_s >= 0) {
-      auto tv = t.number(i, c_ns >= 0 ? c_ns : c_s);
+    if (c_ns >= 0) {
+      // Stamps up to 2^62 ns (146 years), in either direction.
+      auto tv = t.integer(i, c_ns, -(int64_t{1} << 62), int64_t{1} << 62);
       if (!tv) return std::unexpected(tv.error());
-      p.t_ns =
-          c_ns >= 0 ? static_cast<int64_t>(*tv) : static_cast<int64_t>(std::llround(*tv * 1e9));
+      p.t_ns = *tv;
+    } else if (c_s >= 0) {
+      auto tv = t.number(i, c_s);
+      if (!tv) return std::unexpected(tv.error());
+      if (!(std::abs(*tv) <= 4.6e9)) {
+        return fail(fmt::format("{}:{}: column '{}': {} s is not a time (at most 4.6e9 s)", t.file,
+                                t.lines[i], t.header[static_cast<size_t>(c_s)], *tv));
+      }
+      p.t_ns = static_cast<int64_t>(std::llround(*tv * 1e9));
     }
     if (quat) {
       std::array<double, 7> v{};
@@ -170,10 +196,10 @@ vision::Result<std::array<Vec3, 8>> readDivots(const std::filesystem::path& path
     for (const auto* v : {&k, &x, &y, &z}) {
       if (!*v) return std::unexpected(v->error());
     }
-    const int id = static_cast<int>(*k);
-    if (id < 1 || id > 8 || *k != id)
+    if (!(*k >= 1 && *k <= 8) || *k != std::floor(*k))
       return fail(
           fmt::format("{}:{}: divot {} (they are numbered 1 to 8)", t.file, t.lines[i], *k));
+    const int id = static_cast<int>(*k);
     d[static_cast<size_t>(id - 1)] = Vec3(*x, *y, *z);
     seen[static_cast<size_t>(id - 1)] = true;
   }
@@ -199,11 +225,8 @@ vision::Result<std::vector<Acquisition>> readProtocol(const std::filesystem::pat
   for (size_t i = 0; i < t.rows.size(); ++i) {
     std::array<long, 12> v{};
     for (size_t k = 0; k < 12; ++k) {
-      auto x = t.number(i, col[k]);
+      auto x = t.integer(i, col[k], 0, kMaxFrame);
       if (!x) return std::unexpected(x.error());
-      if (*x != std::floor(*x) || *x < 0)
-        return fail(
-            fmt::format("{}:{}: {} must be a whole number >= 0", t.file, t.lines[i], names[k]));
       v[k] = static_cast<long>(*x);
     }
     Acquisition a{static_cast<int>(v[0]), static_cast<int>(v[1]), v[2], v[3], {}, {}};

@@ -2,8 +2,10 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <map>
 #include <opencv2/imgproc.hpp>
+#include <vector>
 
 #include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
@@ -64,6 +66,9 @@ vision::Result<ValidationResult> validate(const ValidationInputs& in,
   };
   auto reader = record::Reader::open(in.recording);
   if (!reader) return std::unexpected(reader.error());
+  if (reader->size() == 0) {
+    return fail(fmt::format("{}: the recording holds no complete frame", in.recording.string()));
+  }
   auto markers = readPoses(pick(in.markers, "markers.csv"));
   if (!markers) return std::unexpected(markers.error());
   if (!markers->timed && markers->poses.front().frame < 0)
@@ -90,8 +95,30 @@ vision::Result<ValidationResult> validate(const ValidationInputs& in,
     if (p.frame >= 0) by_frame[p.frame] = p.pose;
     by_time.emplace_back(p.t_ns, p.pose);
   }
-  const double fps = reader->manifest().nominal_fps > 0 ? reader->manifest().nominal_fps : 10.0;
-  const auto half_period = static_cast<int64_t>(0.5e9 / fps);
+  // Marker poses pair with frames by time within half a frame period: the manifest's rate, or
+  // (a manifest without one) the recording's median period per frame index.
+  double period_ns = 0.0;
+  if (reader->manifest().nominal_fps > 0) {
+    period_ns = 1e9 / reader->manifest().nominal_fps;
+  } else {
+    std::vector<double> periods;
+    for (size_t i = 1; i < reader->size(); ++i) {
+      const auto& a = reader->meta(i - 1);
+      const auto& b = reader->meta(i);
+      periods.push_back(double(b.t_left_ns - a.t_left_ns) / double(b.frame - a.frame));
+    }
+    if (!periods.empty()) {
+      std::nth_element(periods.begin(), periods.begin() + long(periods.size() / 2), periods.end());
+      period_ns = periods[periods.size() / 2];
+    }
+  }
+  if (!(period_ns > 0.0)) {
+    return fail(
+        fmt::format("{}: no frame rate: manifest.toml has no nominal_fps and the "
+                    "recording's stamps give none",
+                    reader->dir().string()));
+  }
+  const auto half_period = static_cast<int64_t>(0.5 * period_ns);
   const auto markerPose = [&](long frame, int64_t t) -> std::optional<Pose> {
     if (!by_frame.empty()) {
       const auto it = by_frame.find(frame);

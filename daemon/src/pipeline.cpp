@@ -5,6 +5,7 @@
 #include <cmath>
 #include <thread>
 
+#include "pulsetrack/daemon/command.hpp"
 #include "pulsetrack/daemon/log.hpp"
 #include "pulsetrack/rt/thread_policy.hpp"
 
@@ -313,41 +314,28 @@ void Pipeline::publishLoop() {
 }
 
 std::string Pipeline::command(const pulsetrack_msgs_msg_dds__Command_& c) {
-  const std::string what = c.command != nullptr ? c.command : "";
-  std::string why;
-  const std::string rig = c.rig_id != nullptr ? c.rig_id : "";
-  if (!rig.empty() && rig != config_.rig_id) {
-    why = fmt::format("addressed to rig '{}', this is '{}' (namespace '{}')", rig.substr(0, 32),
-                      config_.rig_id, config_.ros_namespace);
-  } else if (what == "start") {
-    paused_.store(false);
-  } else if (what == "stop") {
-    paused_.store(true);
-  } else if (what == "redetect") {
-    redetect_requested_.store(true);
-  } else if (what == "set_roi") {
-    const cv::Rect l(c.roi_left[0], c.roi_left[1], c.roi_left[2], c.roi_left[3]);
-    const cv::Rect r(c.roi_right[0], c.roi_right[1], c.roi_right[2], c.roi_right[3]);
-    const double depth_mm = c.depth_tolerance_m * 1e3;
-    if (auto ok = vision::TrackingSession::checkRoi(source_->rig(), {l, r}, depth_mm); !ok) {
-      why = ok.error().message;
-    } else {
-      roi_requests_.back() = {{l, r}, depth_mm};
+  CheckedCommand cc = checkCommand(c, config_.rig_id, config_.ros_namespace, source_->rig());
+  switch (cc.kind) {
+    case CommandKind::kStart:
+      paused_.store(false);
+      break;
+    case CommandKind::kStop:
+      paused_.store(true);
+      break;
+    case CommandKind::kRedetect:
+      redetect_requested_.store(true);
+      break;
+    case CommandKind::kSetRoi:
+      roi_requests_.back() = {cc.roi, cc.depth_mm};
       roi_requests_.publish();
-    }
-  } else {
-    why = "unknown command (start, stop, redetect, set_roi)";
+      break;
+    case CommandKind::kRefused:
+      commands_refused_.fetch_add(1);
+      command_errors_.back() = cc.refusal;
+      command_errors_.publish();
+      break;
   }
-  if (!why.empty()) {
-    // What was sent is quoted printable-only and short: the health topic is not an echo.
-    std::string shown;
-    for (const char ch : what.substr(0, 32)) shown += (ch >= 32 && ch < 127) ? ch : '?';
-    why = fmt::format("command {} '{}' refused: {}", c.request_id, shown, why);
-    commands_refused_.fetch_add(1);
-    command_errors_.back() = why;
-    command_errors_.publish();
-  }
-  return why;
+  return cc.refusal;
 }
 
 void Pipeline::commandLoop() {

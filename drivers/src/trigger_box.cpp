@@ -146,9 +146,12 @@ void TriggerState::onReport(const TriggerReport& r, int64_t host_ns) {
       *std::min_element(offsets_.begin(), offsets_.begin() + static_cast<long>(n));
   const uint64_t seq = epoch_ + r.sequence;
   Entry& e = ring_[seq % kRing];
+  // A seqlock without fences (ThreadSanitizer cannot follow std::atomic_thread_fence, and g++
+  // refuses to build one under -fsanitize=thread): the time is stored with release, so a reader
+  // that sees it (acquire) also sees the UINT64_MAX before it and skips the entry. On x86 these
+  // are plain stores and loads, as with the fences; on ARMv8 stlr/ldar instead of dmb.
   e.seq.store(UINT64_MAX, std::memory_order_relaxed);
-  std::atomic_thread_fence(std::memory_order_release);
-  e.host_ns.store(device_ns + offset, std::memory_order_relaxed);
+  e.host_ns.store(device_ns + offset, std::memory_order_release);
   e.seq.store(seq, std::memory_order_release);
 }
 
@@ -162,8 +165,9 @@ std::optional<uint64_t> TriggerState::pulseNear(int64_t t_ns, int64_t tolerance_
   for (const Entry& e : ring_) {
     const uint64_t s1 = e.seq.load(std::memory_order_acquire);
     if (s1 == UINT64_MAX) continue;
-    const int64_t t = e.host_ns.load(std::memory_order_relaxed);
-    std::atomic_thread_fence(std::memory_order_acquire);
+    // Acquire: the check of seq below cannot move before this load, and a time written after
+    // s1 brings the writer's UINT64_MAX with it.
+    const int64_t t = e.host_ns.load(std::memory_order_acquire);
     if (e.seq.load(std::memory_order_relaxed) != s1) continue;  // being rewritten
     const int64_t d = std::llabs(t - t_ns);
     if (d < best_d) {

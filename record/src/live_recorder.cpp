@@ -6,10 +6,13 @@
 
 namespace pulsetrack::record {
 
-// Slot numbers: free ones (writer -> capture) and filled ones (capture -> writer).
+// Slot numbers: free ones (writer -> capture) and filled ones (capture -> writer). A slot number
+// hands over the slot's images, so the hand-over must be release/acquire: AtomicQueueB2 (a state
+// byte per element, stored with release and loaded with acquire). AtomicQueueB's SPSC pop loads
+// the element relaxed, which orders nothing else: ThreadSanitizer (preset tsan) reported the
+// writer thread reading images the capture thread had just copied in.
 struct LiveRecorder::Queues {
-  using Q = atomic_queue::AtomicQueueB<uint32_t, std::allocator<uint32_t>, UINT32_MAX, false, false,
-                                       true>;
+  using Q = atomic_queue::AtomicQueueB2<uint32_t, std::allocator<uint32_t>, false, false, true>;
   explicit Queues(unsigned n) : free(n), filled(n) {}
   Q free, filled;
 };

@@ -10,6 +10,7 @@
 
 #include <bit>
 #include <cerrno>
+#include <cmath>
 #include <cstring>
 #include <ctime>
 
@@ -27,6 +28,8 @@ constexpr uint32_t kRecordMagic = 0x52465450;  // "PTFR"
 constexpr uint32_t kPixelGray8 = 1;
 constexpr uint32_t kCodecRaw = 0;
 constexpr uint32_t kCodecZstd = 1;
+// No recording reaches it (248 days at 100 Hz); a larger index is a corrupt or forged record.
+constexpr uint64_t kMaxFrameIndex = (1ULL << 31) - 1;
 
 struct FileHeader {
   char magic[8];
@@ -405,7 +408,14 @@ Result<Manifest> readManifest(const std::filesystem::path& path) {
   m.source = t["source"].value_or(std::string());
   m.rig_id = t["rig_id"].value_or(std::string());
   m.pixel_format = t["pixel_format"].value_or(std::string("gray8"));
-  m.nominal_fps = t["nominal_fps"].value_or(0.0);
+  if (const toml::node* fps = t.get("nominal_fps")) {
+    const auto rate = fps->value<double>();
+    if (!rate || !std::isfinite(*rate) || *rate <= 0.0 || *rate > 10000.0) {
+      return fail(fmt::format("{}:{}: nominal_fps must be a number above 0 and up to 10000",
+                              path.string(), line(fps)));
+    }
+    m.nominal_fps = *rate;
+  }
   m.created = t["created"].value_or(std::string());
   if (m.pixel_format != "gray8") {
     return fail(fmt::format("{}: pixel_format '{}' is not supported (gray8)", path.string(),
@@ -451,6 +461,14 @@ Result<Reader> Reader::open(const std::filesystem::path& dir) {
     return fail(
         fmt::format("{}: frames file version {} is not one this pulsetrack reads", fp, fh.version));
   }
+  if (fh.header_size != sizeof fh) {
+    return fail(fmt::format("{}: file header size {} (version {} has {})", fp, fh.header_size,
+                            fh.version, sizeof fh));
+  }
+  if (fh.pixel_format != kPixelGray8) {
+    return fail(fmt::format("{}: pixel format {} is not one this pulsetrack reads (1: 8-bit grey)",
+                            fp, fh.pixel_format));
+  }
   if (static_cast<int>(fh.width) != impl->manifest.width ||
       static_cast<int>(fh.height) != impl->manifest.height) {
     return fail(fmt::format("{}: frames are {}x{} but manifest.toml says {}x{}", fp, fh.width,
@@ -462,6 +480,7 @@ Result<Reader> Reader::open(const std::filesystem::path& dir) {
                             dir.string(), rig_size.width, rig_size.height, impl->manifest.width,
                             impl->manifest.height));
   }
+  const uint64_t image_bytes = static_cast<uint64_t>(fh.width) * fh.height;
   const uint64_t max_payload =
       2ULL * (ZSTD_compressBound(static_cast<size_t>(fh.width) * fh.height));
 
@@ -486,6 +505,34 @@ Result<Reader> Reader::open(const std::filesystem::path& dir) {
       impl->truncation = fmt::format("frame {} at byte {} is incomplete (file cut after {} frames)",
                                      h.frame, static_cast<long long>(offset), impl->index.size());
       break;
+    }
+    // A record whose header is intact (its CRC holds) but whose fields no writer produces is
+    // an error, not a truncation: the file was made or changed by something else.
+    const auto bad = [&](const std::string& what) {
+      return fail(fmt::format("{}: record at byte {} (frame {}): {}", fp,
+                              static_cast<long long>(offset), h.frame, what));
+    };
+    if (h.frame > kMaxFrameIndex) {
+      return bad(fmt::format("frame index above {} (248 days at 100 Hz)", kMaxFrameIndex));
+    }
+    if (!impl->index.empty() && h.frame <= impl->index.back().meta.frame) {
+      return bad(fmt::format("frame indices must increase, the previous record is frame {}",
+                             impl->index.back().meta.frame));
+    }
+    if (h.t_left_ns < 0 || h.t_right_ns < 0) {
+      return bad(
+          fmt::format("negative timestamp (left {} ns, right {} ns)", h.t_left_ns, h.t_right_ns));
+    }
+    if (!impl->index.empty() && h.t_left_ns < impl->index.back().meta.t_left_ns) {
+      return bad(fmt::format("left timestamp {} ns goes back from the previous frame's {} ns",
+                             h.t_left_ns, impl->index.back().meta.t_left_ns));
+    }
+    if (h.flags != 0) return bad(fmt::format("flags {:#x} are reserved (0 in version 1)", h.flags));
+    if (h.codec != kCodecRaw && h.codec != kCodecZstd)
+      return bad(fmt::format("codec {} is not one this pulsetrack reads (0 raw, 1 zstd)", h.codec));
+    if (h.codec == kCodecRaw && (h.left_bytes != image_bytes || h.right_bytes != image_bytes)) {
+      return bad(fmt::format("raw images of {} and {} bytes, the frames are {}x{} ({} bytes)",
+                             h.left_bytes, h.right_bytes, fh.width, fh.height, image_bytes));
     }
     Impl::Entry e;
     e.meta = {h.frame, h.trigger_seq, h.t_left_ns, h.t_right_ns, h.flags};

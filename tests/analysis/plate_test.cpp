@@ -200,6 +200,21 @@ TEST(ReferenceFiles, NdiQuaternionsMatricesMissingRowsAndBadInput) {
               "not a rotation");
   EXPECT_NE(readPoses(dir / "none.csv").error().message.find("none.csv: cannot open"),
             std::string::npos);
+  // Numbers past what the column holds are named, not cast (fuzz_reference's finding: a frame
+  // of 7.8e74 was converted to long, undefined behaviour).
+  expectError("b6.csv",
+              "frame,m00,m01,m02,m03,m10,m11,m12,m13,m20,m21,m22,m23\n"
+              "0777777777777777777777777777777777777777777777777777777777777777777777777777,1,0,"
+              "0,1,0,1,0,2,0,0,1,3\n",
+              "b6.csv:2: column 'frame': '0777777777777777777777777777777777777777777777777777777"
+              "777777777777777777777' is not a whole number from 0 to 2147483647");
+  expectError("b7.csv", "t_ns,qw,qx,qy,qz,tx,ty,tz\n1e300,1,0,0,0,0,0,0\n",
+              "b7.csv:2: column 't_ns': '1e300' is not a whole number");
+  expectError("b8.csv", "t,qw,qx,qy,qz,tx,ty,tz\n1e300,1,0,0,0,0,0,0\n",
+              "b8.csv:2: column 't': 1e+300 s is not a time");
+  std::ofstream(dir / "d9.csv") << "divot,x,y,z\n1e300,0,0,0\n";
+  EXPECT_NE(readDivots(dir / "d9.csv").error().message.find("d9.csv:2: divot 1e+300"),
+            std::string::npos);
 
   std::ofstream(dir / "d.csv")
       << "divot,x,y,z\n1,0,0,0\n2,0,0,0\n3,0,0,0\n4,0,0,0\n5,0,0,0\n6,0,0,0\n7,0,0,0\n";
@@ -213,6 +228,14 @@ TEST(ReferenceFiles, NdiQuaternionsMatricesMissingRowsAndBadInput) {
   auto p = readProtocol(dir / "p.csv");
   ASSERT_FALSE(p);
   EXPECT_NE(p.error().message.find("p.csv:2: last_frame before first_frame"), std::string::npos);
+  std::ofstream(dir / "p2.csv")
+      << "set,acquisition,first_frame,last_frame,roi_left_x,roi_left_y,roi_left_w,"
+         "roi_left_h,roi_right_x,roi_right_y,roi_right_w,roi_right_h\n"
+         "0,0,0,4,1,1,1e19,100,1,1,100,100\n";
+  EXPECT_NE(readProtocol(dir / "p2.csv")
+                .error()
+                .message.find("p2.csv:2: column 'roi_left_w': '1e19' is not a whole number"),
+            std::string::npos);
 }
 
 }  // namespace

@@ -7,10 +7,14 @@
 #include <gtest/gtest.h>
 
 #include <array>
+#include <climits>
+#include <cmath>
 #include <ctime>
 #include <thread>
 
 #include "drivers/fake_v4l2.hpp"
+#include "pulsetrack/daemon/command.hpp"
+#include "pulsetrack/sim/paper_rig.hpp"
 #include "pulsetrack/sim/scene.hpp"
 #include "test_util.hpp"
 
@@ -279,6 +283,51 @@ TEST(Pipeline, StampsAreTheExposureOnTheSystemClock) {
   dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
   dds_sample_free(&d, &pulsetrack_msgs_msg_dds__Deformation__desc, DDS_FREE_CONTENTS);
   dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+}
+
+// A command sample's fields are a remote participant's: whatever they hold, the command is
+// refused with a printable reason or is one the daemon can act on (fuzz/fuzz_command runs the
+// same function on random samples; these are its findings and the cases around them).
+TEST(CheckCommand, HostileFieldsAreRefusedPrintably) {
+  const vision::StereoRig rig = sim::paperRig();
+  pulsetrack_msgs_msg_dds__Command_ c{};
+  const auto check = [&] { return checkCommand(c, "rig-a", "/or1", rig); };
+  // Absent strings: no command.
+  EXPECT_EQ(check().kind, CommandKind::kRefused);
+  EXPECT_NE(check().refusal.find("unknown command"), std::string::npos);
+  c.command = const_cast<char*>("start");
+  EXPECT_EQ(check().kind, CommandKind::kStart);
+  // Another rig's, with control characters and bytes above 127 in its id: quoted printably.
+  char other[] = "rig\x1b[2J\xff\n";
+  c.rig_id = other;
+  auto refused = check();
+  ASSERT_EQ(refused.kind, CommandKind::kRefused);
+  for (const char ch : refused.refusal) EXPECT_TRUE(ch >= 32 && ch < 127) << refused.refusal;
+  EXPECT_NE(refused.refusal.find("addressed to rig 'rig?[2J?"
+                                 "?'"),
+            std::string::npos)
+      << refused.refusal;
+  c.rig_id = nullptr;
+  // ROIs whose corners overflow int (x + width past INT_MAX), negative sizes, NaN and huge
+  // depths: refused, never accepted.
+  c.command = const_cast<char*>("set_roi");
+  const int good[4] = {400, 300, 400, 300};
+  std::copy_n(good, 4, c.roi_left);
+  std::copy_n(good, 4, c.roi_right);
+  c.depth_tolerance_m = 0.02;
+  ASSERT_EQ(check().kind, CommandKind::kSetRoi) << check().refusal;
+  for (const auto& bad :
+       {std::array<int, 4>{INT_MAX, 0, INT_MAX, 300}, std::array<int, 4>{0, INT_MAX - 10, 400, 100},
+        std::array<int, 4>{INT_MIN, INT_MIN, INT_MAX, INT_MAX},
+        std::array<int, 4>{400, 300, -400, 300}}) {
+    std::copy_n(bad.data(), 4, c.roi_left);
+    EXPECT_EQ(check().kind, CommandKind::kRefused) << bad[0] << "," << bad[1];
+  }
+  std::copy_n(good, 4, c.roi_left);
+  for (const double depth : {std::nan(""), 1e308, -0.02, 0.0, HUGE_VAL}) {
+    c.depth_tolerance_m = depth;
+    EXPECT_EQ(check().kind, CommandKind::kRefused) << depth;
+  }
 }
 
 // The case: set_roi with a 40x40 ROI in the image's corner. Nothing is tracked there;

@@ -3,13 +3,17 @@
 
 #include "pulsetrack/record/recording.hpp"
 
+#include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
+#include <zlib.h>
 
+#include <cstring>
 #include <fstream>
+#include <limits>
 #include <opencv2/calib3d.hpp>
 #include <random>
 #include <thread>
@@ -200,6 +204,99 @@ TEST_F(Recording, BadFoldersAndVersionsAreNamed) {
   r = Reader::open(dir);
   ASSERT_FALSE(r);
   EXPECT_NE(r.error().message.find("not a pulsetrack frames file"), std::string::npos);
+}
+
+// Found by fuzzing (issue 15): each of these was read without a word and tracked with exit 0.
+// The forged fields carry valid CRCs (zlib's crc32, computed here from the documented layout in
+// docs/recording-format.md, not by the writer), so only the reader's own checks can catch them.
+class ForgedRecording : public Recording {
+ protected:
+  std::string original, bytes;
+  void SetUp() override {
+    record(3, 0);
+    std::ifstream in(dir / "frames.ptv", std::ios::binary);
+    original.assign(std::istreambuf_iterator<char>(in), {});
+    bytes = original;
+  }
+  void reset() { bytes = original; }
+  template <class T>
+  void put(size_t at, T v) {
+    std::memcpy(bytes.data() + at, &v, sizeof v);
+  }
+  void reseal(size_t header_at, size_t crc_at) {
+    const auto crc =
+        static_cast<uint32_t>(crc32(0L, reinterpret_cast<const Bytef*>(bytes.data() + header_at),
+                                    static_cast<uInt>(crc_at - header_at)));
+    put(crc_at, crc);
+  }
+  // The k-th record's header offset (raw frames: 64 + 2 images each).
+  size_t recordAt(size_t k) const { return 32 + k * (64 + 2 * size_t(size.area())); }
+  void patchRecord(size_t k, size_t field, auto value) {
+    put(recordAt(k) + field, value);
+    reseal(recordAt(k), recordAt(k) + 60);
+  }
+  std::string openError() {
+    std::ofstream(dir / "frames.ptv", std::ios::binary | std::ios::trunc) << bytes;
+    auto r = Reader::open(dir);
+    if (r) return "opened with " + std::to_string(r->size()) + " frames";
+    return r.error().message;
+  }
+};
+
+TEST_F(ForgedRecording, FileHeaderFieldsNoWriterMakesAreNamed) {
+  put<uint32_t>(24, 1361);  // pixel format
+  reseal(0, 28);
+  EXPECT_THAT(openError(), ::testing::HasSubstr("frames.ptv: pixel format 1361 is not one"));
+  put<uint32_t>(24, 1);
+  put<uint32_t>(12, 0x7fffffff);  // header size
+  reseal(0, 28);
+  EXPECT_THAT(openError(), ::testing::HasSubstr("frames.ptv: file header size 2147483647"));
+}
+
+TEST_F(ForgedRecording, RecordFieldsNoWriterMakesAreNamedWithTheirByte) {
+  const std::string at1 = "frames.ptv: record at byte " + std::to_string(recordAt(1));
+  patchRecord(1, 8, uint64_t{0});  // frame 0 again
+  EXPECT_THAT(openError(), ::testing::HasSubstr(at1 + " (frame 0): frame indices must increase"));
+  reset();
+  patchRecord(1, 8, uint64_t{1} << 32);
+  EXPECT_THAT(openError(), ::testing::HasSubstr("frame index above 2147483647"));
+  reset();
+  patchRecord(1, 24, std::numeric_limits<int64_t>::min());
+  EXPECT_THAT(openError(), ::testing::HasSubstr("negative timestamp"));
+  reset();
+  patchRecord(2, 24, int64_t{1});  // before frame 1's
+  EXPECT_THAT(openError(), ::testing::HasSubstr("left timestamp 1 ns goes back"));
+  reset();
+  patchRecord(1, 40, uint32_t{4});
+  EXPECT_THAT(openError(), ::testing::HasSubstr("flags 0x4 are reserved"));
+  reset();
+  patchRecord(1, 44, uint32_t{7});
+  EXPECT_THAT(openError(), ::testing::HasSubstr("codec 7 is not one"));
+  // Untouched, it opens: the checks above are the forgeries', not the fixture's.
+  reset();
+  EXPECT_EQ(openError(), "opened with 3 frames");
+}
+
+TEST_F(Recording, ManifestRateMustBeARate) {
+  record(2, 1);
+  std::string text;
+  {
+    std::ifstream in(dir / "manifest.toml");
+    text.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  const size_t at = text.find("nominal_fps = ");
+  ASSERT_NE(at, std::string::npos);
+  const size_t end = text.find('\n', at);
+  for (const char* v : {"nan", "inf", "-10", "0", "1e9", "\"fast\""}) {
+    SCOPED_TRACE(v);
+    std::string t = text;
+    t.replace(at, end - at, std::string("nominal_fps = ") + v);
+    std::ofstream(dir / "manifest.toml", std::ios::trunc) << t;
+    auto r = Reader::open(dir);
+    ASSERT_FALSE(r);
+    EXPECT_THAT(r.error().message,
+                ::testing::MatchesRegex(".*manifest.toml:[0-9]+: nominal_fps must be a number.*"));
+  }
 }
 
 TEST_F(Recording, WriterRefusesToOverwriteAndBadFrames) {

@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include <filesystem>
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
 #include <regex>
@@ -111,6 +112,14 @@ TEST(TrackCli, ClearErrors) {
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("left ROI 1300,1000 200x200: not inside the 1360x1024 image"),
             std::string::npos)
+      << r.output;
+  // A recording with no frame (its frames.ptv cut to the header) is an error, not "0 features"
+  // and exit 0 (found by fuzzing, issue 15).
+  std::filesystem::resize_file(dir / "rec/frames.ptv", 32);
+  r = test::run(test::cli() + " track --input " + (dir / "rec") + kRois + "--out " +
+                (dir / "x.csv"));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("rec: the recording holds no complete frame"), std::string::npos)
       << r.output;
 }
 

@@ -174,7 +174,7 @@ TEST_F(RigFile, WrongTypes) {
   expectError(replaceKey("image_size", "image_size: [ 1360 ]"),
               "key 'image_size': expected \\[width, height\\]");
   expectError(replaceKey("image_size", "image_size: [ 1360, -4 ]"),
-              "key 'image_size': must be positive");
+              "key 'image_size': must be 1 to 16384 px on each side, got 1360x-4");
   expectError(replaceKey("rms", "rms: hello"), "key 'rms': expected a number");
   expectError(replaceKey("rms", "rms: -1.0"), "key 'rms': must be a finite non-negative");
 }
@@ -183,6 +183,93 @@ TEST_F(RigFile, ZeroBaseline) {
   expectError(
       replaceKey("T", "T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [ 0, 0, 0 ]"),
       "key 'T': baseline is zero");
+}
+
+// Found by fuzzing (issue 15), each reproduced on the release build before the fix.
+TEST_F(RigFile, NestingBeyondARigsIsRefusedBeforeOpenCvRecurses) {
+  // 100 000 levels overflowed the stack inside cv::FileStorage (SIGSEGV).
+  expectError(text() + "zz: " + std::string(100000, '[') + "\n",
+              "bad.yaml:[0-9]+: nested more than 32");
+  std::string dashes = "zz:\n";
+  for (int i = 0; i < 50000; ++i) dashes += "- ";
+  expectError(text() + dashes + "1\n", "nested more than 32");
+  std::string blocks;
+  for (int i = 0; i < 40; ++i) blocks += std::string(static_cast<size_t>(i), ' ') + "k:\n";
+  expectError(text() + blocks + std::string(40, ' ') + "v: 1\n", "nested more than 32");
+  // The bound does not see brackets in quotes or comments, and a flow list of a rig is fine.
+  auto rig = loadRig(good);
+  ASSERT_TRUE(rig);
+  const std::string bad = dir / "quoted.yaml";
+  std::ofstream(bad) << text() << "note: \"" << std::string(100, '[') << "\"  # "
+                     << std::string(100, '{') << "\n";
+  EXPECT_TRUE(loadRig(bad)) << loadRig(bad).error().message;
+}
+
+TEST_F(RigFile, AFileThatIsNotAMapIsAnErrorNotAnException) {
+  // fuzz_rig's first finding: OpenCV asserts (throws cv::Exception) on fs["key"] when the top
+  // level is a sequence or a scalar; it escaped loadRig and terminated the program.
+  expectError("%YAML:1.0\n---\n- 1\n- 2\n", "bad.yaml: the top level must be a map of keys");
+  expectError("%YAML:1.0\n---\n42\n",
+              "bad.yaml: (the top level must be a map|cannot open|not valid)");
+}
+
+TEST_F(RigFile, AKeyOpenCvThrowsAStandardExceptionOnIsAnError) {
+  // fuzz_rig's third finding: "   :dt: d" in a matrix made cv::FileStorage::open throw
+  // std::length_error, which escaped loadRig and terminated the program. (The file is read with
+  // yaml-cpp since; the key is then simply not "dt".)
+  std::string t = text();
+  t.replace(t.find("   dt: d"), 8, "   :dt: d");
+  expectError(t, "bad.yaml: key 'M1': matrix must have one channel \\(dt d, f or i\\), got ''");
+}
+
+TEST_F(RigFile, FilesOpenCvsParserNeverReturnsOnAreErrors) {
+  // fuzz_rig's second and fourth findings: OpenCV's FileStorage never returned on these (the
+  // reader is yaml-cpp since; the first also breaks the document rule checked before parsing).
+  expectError("%YAML:1.\n---L:0\n--\n#\n-", "bad.yaml:2: a rig file is one YAML document");
+  expectError("%YAML:1.\n - 4\nM0\n-",
+              "bad.yaml(:[0-9]+: not valid OpenCV YAML|: the top level must be a map)");
+  expectError(text() + "---\nM1: 1\n", "a rig file is one YAML document");
+  expectError(text() + "%TAG ! x\n", "only a %YAML directive, on the first line");
+  expectError("...\n" + text(), "a rig file is one YAML document");
+}
+
+TEST_F(RigFile, AMatrixHeaderOpenCvWouldAllocateFromIsBounded) {
+  // cols: NaN made OpenCV try a 48 GB allocation before any check could run.
+  for (const char* v : {"NaN", "1e9", "100000", "-3", "0", "3.5", "3 4", "'3'"}) {
+    SCOPED_TRACE(v);
+    expectError(replaceKey("M1", std::string("M1: !!opencv-matrix\n   rows: 3\n   cols: ") + v +
+                                     "\n   dt: d\n   data: [ 1, 0, 1, 0, 1, 1, 0, 0, 1 ]"),
+                "bad.yaml:[0-9]+: matrix cols must be an integer from 1 to 64");
+  }
+  expectError(text() + std::string(2 << 20, ' '), "bytes is not a rig file");
+}
+
+TEST_F(RigFile, ValuesNoRealRigHasAreRefusedWithTheirKey) {
+  // fx = 2^31-1 passed and made the tracker ask for ~365 GB.
+  expectError(replaceKey("M2",
+                         "M2: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ "
+                         "2147483647, 0, 690, 0, 5380, 505, 0, 0, 1 ]"),
+              "key 'M2': focal lengths must be at most 100000 px");
+  expectError(replaceKey("M1",
+                         "M1: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ "
+                         "5380, 0, 9000, 0, 5380, 505, 0, 0, 1 ]"),
+              "key 'M1': principal point \\(9000, 505\\) lies outside the 1360x1024 image");
+  // k1 = 1e300 passed and failed later as "ROI pair does not triangulate".
+  expectError(replaceKey("D1",
+                         "D1: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ "
+                         "1e300, 0, 0, 0, 0 ]"),
+              "key 'D1': the distortion does not map the image one to one");
+  // A lens that folds the image (strong negative k1 at this focal length).
+  expectError(replaceKey("D2",
+                         "D2: !!opencv-matrix\n   rows: 1\n   cols: 4\n   dt: d\n   data: [ "
+                         "-2000, 0, 0, 0 ]"),
+              "key 'D2': the distortion does not map the image one to one");
+  expectError(replaceKey("image_size", "image_size: [ 2147483647, 1024 ]"),
+              "key 'image_size': must be 1 to 16384 px");
+  expectError(
+      replaceKey("T",
+                 "T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [ 1e9, 0, 0 ]"),
+      "key 'T': baseline 1000000000 mm is more than");
 }
 
 TEST(RigSave, RefusesAnInvalidRig) {

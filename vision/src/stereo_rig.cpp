@@ -1,12 +1,20 @@
 #include "pulsetrack/vision/stereo_rig.hpp"
 
 #include <fmt/format.h>
+#include <yaml-cpp/yaml.h>
 
+#include <cctype>
+#include <charconv>
 #include <cmath>
+#include <fstream>
+#include <iterator>
 #include <limits>
 #include <opencv2/core.hpp>
 #include <opencv2/core/persistence.hpp>
+#include <optional>
+#include <string_view>
 #include <system_error>
+#include <vector>
 
 namespace pulsetrack::vision {
 
@@ -93,9 +101,41 @@ Result<void> validateCamera(const CameraModel& cam, const std::string& where, co
                     "has no skew)",
                     where, k_key));
   }
+  // Bounds of a real rig (a value past them is a corrupt or hostile file, and would make the
+  // tracker size its search boxes from it): focal lengths up to 1e5 px (a 16k sensor behind a
+  // long lens stays well below), the principal point within the image.
+  const cv::Size size = cam.imageSize();
+  if (k(0, 0) > kMaxFocalPx || k(1, 1) > kMaxFocalPx) {
+    return fail(fmt::format("{}: key '{}': focal lengths must be at most {} px (fx={}, fy={})",
+                            where, k_key, kMaxFocalPx, k(0, 0), k(1, 1)));
+  }
+  if (k(0, 2) < 0.0 || k(0, 2) > size.width || k(1, 2) < 0.0 || k(1, 2) > size.height) {
+    return fail(fmt::format("{}: key '{}': principal point ({}, {}) lies outside the {}x{} image",
+                            where, k_key, k(0, 2), k(1, 2), size.width, size.height));
+  }
   for (int i = 0; i < cam.numDistortion(); ++i) {
     if (!std::isfinite(cam.dist()[static_cast<size_t>(i)])) {
       return fail(fmt::format("{}: key '{}': coefficient {} is not finite", where, d_key, i));
+    }
+  }
+  // The lens must map the image one to one: every pixel of a grid over it (corners and edges
+  // included) undistorted and distorted again comes back to itself, and the distortion does
+  // not fold there. A coefficient like 1e300 passes the finiteness test and fails this one.
+  constexpr int kSteps = 8;
+  for (int gy = 0; gy <= kSteps; ++gy) {
+    for (int gx = 0; gx <= kSteps; ++gx) {
+      const cv::Vec2d px(size.width * gx / double(kSteps), size.height * gy / double(kSteps));
+      const cv::Vec2d n = cam.undistortToNormalized(px);
+      cv::Matx22d j;
+      const cv::Vec2d d = cam.distortNormalized(n, j);
+      const cv::Vec2d back(k(0, 0) * d[0] + k(0, 2), k(1, 1) * d[1] + k(1, 2));
+      const double det = j(0, 0) * j(1, 1) - j(0, 1) * j(1, 0);
+      if (!(cv::norm(back - px) < 0.01) || !(det > 0.0)) {
+        return fail(fmt::format(
+            "{}: key '{}': the distortion does not map the image one to one (pixel ({:.0f}, "
+            "{:.0f}) does not come back through it): not a real lens's coefficients",
+            where, d_key, px[0], px[1]));
+      }
     }
   }
   return {};
@@ -104,13 +144,14 @@ Result<void> validateCamera(const CameraModel& cam, const std::string& where, co
 }  // namespace
 
 Result<void> validateRig(const StereoRig& rig, const std::string& where) {
+  const cv::Size size = rig.left.imageSize();
+  if (size.width <= 0 || size.height <= 0 || size.width > kMaxImageSide ||
+      size.height > kMaxImageSide) {
+    return fail(fmt::format("{}: key 'image_size': must be 1 to {} px on each side, got {}x{}",
+                            where, kMaxImageSide, size.width, size.height));
+  }
   if (auto ok = validateCamera(rig.left, where, "M1", "D1"); !ok) return ok;
   if (auto ok = validateCamera(rig.right, where, "M2", "D2"); !ok) return ok;
-  const cv::Size size = rig.left.imageSize();
-  if (size.width <= 0 || size.height <= 0) {
-    return fail(fmt::format("{}: key 'image_size': must be positive, got {}x{}", where, size.width,
-                            size.height));
-  }
   if (!allFinite(rig.r)) return fail(fmt::format("{}: key 'R': has NaN or infinite values", where));
   const double orth = cv::norm(rig.r.t() * rig.r - cv::Matx33d::eye(), cv::NORM_INF);
   const double det = cv::determinant(rig.r);
@@ -123,6 +164,10 @@ Result<void> validateRig(const StereoRig& rig, const std::string& where) {
     return fail(fmt::format("{}: key 'T': has NaN or infinite values", where));
   }
   if (!(cv::norm(rig.t) > 0.0)) return fail(fmt::format("{}: key 'T': baseline is zero", where));
+  if (cv::norm(rig.t) > kMaxBaselineMm) {
+    return fail(fmt::format("{}: key 'T': baseline {:.0f} mm is more than a stereo rig's {} mm",
+                            where, cv::norm(rig.t), kMaxBaselineMm));
+  }
   if (!std::isfinite(rig.rms) || rig.rms < 0.0) {
     return fail(
         fmt::format("{}: key 'rms': must be a finite non-negative number, got {}", where, rig.rms));
@@ -132,33 +177,67 @@ Result<void> validateRig(const StereoRig& rig, const std::string& where) {
 
 namespace {
 
-Result<cv::Mat> readMatrix(const cv::FileStorage& fs, const std::string& where, const char* key) {
-  const cv::FileNode node = fs[key];
-  if (node.empty()) return fail(fmt::format("{}: key '{}' is missing", where, key));
-  if (!node.isMap()) {
+// A number of the file: yaml-cpp's conversion, plus OpenCV's spellings of NaN and infinity
+// (".Nan", ".Inf", "-.Inf", which YAML's core schema spells otherwise).
+std::optional<double> scalarNumber(const YAML::Node& n) {
+  if (!n.IsScalar()) return std::nullopt;
+  double v = 0.0;
+  if (YAML::convert<double>::decode(n, v)) return v;
+  std::string s = n.Scalar();
+  for (char& c : s) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  if (s == ".nan") return std::numeric_limits<double>::quiet_NaN();
+  if (s == ".inf" || s == "+.inf") return std::numeric_limits<double>::infinity();
+  if (s == "-.inf") return -std::numeric_limits<double>::infinity();
+  return std::nullopt;
+}
+
+// An opencv-matrix (rows, cols, dt, data) as OpenCV's FileStorage writes it, read without
+// OpenCV's parser (it loops forever on some malformed files: fuzz_rig).
+Result<cv::Mat> readMatrix(const YAML::Node& root, const std::string& where, const char* key) {
+  const YAML::Node node = root[key];
+  if (!node) return fail(fmt::format("{}: key '{}' is missing", where, key));
+  if (!node.IsMap()) {
     return fail(fmt::format("{}: key '{}': expected an opencv-matrix, got a {}", where, key,
-                            node.isSeq() ? "sequence" : "scalar"));
+                            node.IsSequence() ? "sequence" : "scalar"));
   }
-  cv::Mat m;
-  try {
-    node >> m;
-  } catch (const cv::Exception& e) {
-    return fail(fmt::format("{}: key '{}': not a readable opencv-matrix ({})", where, key, e.err));
+  constexpr int kMaxSide = 64;  // a rig's matrices are 3x3 or 1x8
+  int size[2] = {0, 0};
+  for (int k = 0; k < 2; ++k) {
+    const char* field = k == 0 ? "rows" : "cols";
+    const YAML::Node n = node[field];
+    int v = 0;
+    if (!n || !n.IsScalar() || !YAML::convert<int>::decode(n, v) || v < 1 || v > kMaxSide) {
+      return fail(fmt::format("{}: key '{}': {} must be an integer from 1 to {}", where, key, field,
+                              kMaxSide));
+    }
+    size[k] = v;
   }
-  if (m.empty()) return fail(fmt::format("{}: key '{}': empty or malformed matrix", where, key));
-  if (m.channels() != 1)
-    return fail(fmt::format("{}: key '{}': matrix must have one channel", where, key));
-  m.convertTo(m, CV_64F);
-  for (auto it = m.begin<double>(); it != m.end<double>(); ++it) {
-    if (!std::isfinite(*it))
+  const YAML::Node dt = node["dt"];
+  if (!dt || !dt.IsScalar() || (dt.Scalar() != "d" && dt.Scalar() != "f" && dt.Scalar() != "i")) {
+    return fail(fmt::format("{}: key '{}': matrix must have one channel (dt d, f or i), got '{}'",
+                            where, key, dt && dt.IsScalar() ? dt.Scalar() : std::string()));
+  }
+  const YAML::Node data = node["data"];
+  const auto n = static_cast<size_t>(size[0]) * static_cast<size_t>(size[1]);
+  if (!data || !data.IsSequence() || data.size() != n) {
+    return fail(fmt::format("{}: key '{}': data must hold rows x cols = {} numbers, got {}", where,
+                            key, n, data && data.IsSequence() ? data.size() : 0));
+  }
+  cv::Mat m(size[0], size[1], CV_64F);
+  for (size_t k = 0; k < n; ++k) {
+    const auto v = scalarNumber(data[k]);
+    if (!v) {
+      return fail(fmt::format("{}: key '{}': value {} is not a number", where, key, k + 1));
+    }
+    if (!std::isfinite(*v))
       return fail(fmt::format("{}: key '{}': contains NaN or infinity", where, key));
+    m.at<double>(static_cast<int>(k)) = *v;
   }
   return m;
 }
 
-Result<cv::Matx33d> readMatx33(const cv::FileStorage& fs, const std::string& where,
-                               const char* key) {
-  auto m = readMatrix(fs, where, key);
+Result<cv::Matx33d> readMatx33(const YAML::Node& root, const std::string& where, const char* key) {
+  auto m = readMatrix(root, where, key);
   if (!m) return std::unexpected(m.error());
   if (m->rows != 3 || m->cols != 3) {
     return fail(fmt::format("{}: key '{}': expected a 3x3 matrix, got {}x{}", where, key, m->rows,
@@ -167,11 +246,11 @@ Result<cv::Matx33d> readMatx33(const cv::FileStorage& fs, const std::string& whe
   return cv::Matx33d(m->ptr<double>());
 }
 
-Result<CameraModel> readCamera(const cv::FileStorage& fs, const std::string& where,
-                               const char* k_key, const char* d_key, cv::Size size) {
-  auto k = readMatx33(fs, where, k_key);
+Result<CameraModel> readCamera(const YAML::Node& root, const std::string& where, const char* k_key,
+                               const char* d_key, cv::Size size) {
+  auto k = readMatx33(root, where, k_key);
   if (!k) return std::unexpected(k.error());
-  auto d = readMatrix(fs, where, d_key);
+  auto d = readMatrix(root, where, d_key);
   if (!d) return std::unexpected(d.error());
   const int n = static_cast<int>(d->total());
   if ((d->rows != 1 && d->cols != 1) || (n != 4 && n != 5 && n != 8)) {
@@ -186,42 +265,149 @@ Result<CameraModel> readCamera(const cv::FileStorage& fs, const std::string& whe
 
 }  // namespace
 
-Result<StereoRig> loadRig(const std::filesystem::path& path) {
-  const std::string where = path.string();
-  std::error_code ec;
-  if (!std::filesystem::is_regular_file(path, ec)) {
-    return fail(fmt::format("{}: rig file not found or not a regular file", where));
-  }
-  cv::FileStorage fs;
-  try {
-    if (!fs.open(where, cv::FileStorage::READ)) {
-      return fail(fmt::format("{}: cannot open as OpenCV YAML", where));
-    }
-  } catch (const cv::Exception& e) {
-    return fail(
-        fmt::format("{}: not valid OpenCV YAML (truncated or malformed): {}", where, e.err));
-  }
+namespace {
 
-  const cv::FileNode size_node = fs["image_size"];
-  if (size_node.empty()) return fail(fmt::format("{}: key 'image_size' is missing", where));
-  if (!size_node.isSeq() || size_node.size() != 2 || !size_node[0].isInt() ||
-      !size_node[1].isInt()) {
+// What OpenCV's YAML parser cannot be trusted with, checked on the text before it sees it: the
+// nesting depth (block indentation levels, "- " entries opened on one line, flow brackets) and
+// the rows/cols of every matrix. The scan knows enough YAML for that (quotes, comments); it is
+// a bound, not a parser: what passes is parsed by OpenCV as before.
+Result<void> checkRigText(const std::string& text, const std::string& where) {
+  constexpr long kMaxMatrixSide = 64;  // a rig's matrices are 3x3 or 1x8
+  std::vector<size_t> indents;         // the open block levels' columns
+  int flow = 0;                        // open [ and {, across lines
+  int documents = 0;                   // "---" lines
+  bool seen_content = false;
+  size_t line_no = 0;
+  for (size_t start = 0; start <= text.size();) {
+    size_t end = text.find('\n', start);
+    if (end == std::string::npos) end = text.size();
+    const std::string_view line(text.data() + start, end - start);
+    start = end + 1;
+    ++line_no;
+    size_t i = line.find_first_not_of(" \t\r");
+    if (i == std::string_view::npos || line[i] == '#') continue;
+    // The document's frame as OpenCV writes it: one "%YAML" directive first, one "---" alone on
+    // its line. OpenCV's parser loops forever on some other frames (fuzz_rig found
+    // "%YAML:1.\n---L:0\n--\n#\n-"), so nothing else is let through to it.
+    if (flow == 0 && i == 0) {
+      const bool marker = line.starts_with("---") || line.starts_with("...");
+      if (line[0] == '%' && (seen_content || !line.starts_with("%YAML"))) {
+        return fail(fmt::format("{}:{}: only a %YAML directive, on the first line, is allowed",
+                                where, line_no));
+      }
+      if (marker) {
+        const size_t rest = line.find_first_not_of(" \t\r", 3);
+        if ((rest != std::string_view::npos && line[rest] != '#') || line[0] == '.' ||
+            ++documents > 1) {
+          return fail(
+              fmt::format("{}:{}: a rig file is one YAML document: '---' once, alone on its line",
+                          where, line_no));
+        }
+      }
+      if (line[0] == '%' || marker) {
+        seen_content = line[0] != '%';
+        continue;
+      }
+    }
+    seen_content = true;
+    int dashes = 0;
+    if (flow == 0) {
+      while (!indents.empty() && indents.back() >= i) indents.pop_back();
+      indents.push_back(i);
+      // "- - - x" opens a sequence per dash on one line.
+      while (i + 1 < line.size() && (line[i] == '-' || line[i] == '?') &&
+             (line[i + 1] == ' ' || line[i + 1] == '\t')) {
+        ++dashes;
+        i = line.find_first_not_of(" \t", i + 1);
+        if (i == std::string_view::npos) i = line.size();
+      }
+    }
+    const int block = static_cast<int>(indents.size()) + dashes;
+    int depth = block + flow;
+    char quote = 0;
+    for (size_t k = i; k < line.size(); ++k) {
+      const char c = line[k];
+      if (quote != 0) {
+        if (c == '\\' && quote == '"')
+          ++k;
+        else if (c == quote)
+          quote = 0;
+        continue;
+      }
+      if (c == '"' || c == '\'') {
+        quote = c;
+      } else if (c == '#' && (k == 0 || line[k - 1] == ' ' || line[k - 1] == '\t')) {
+        break;
+      } else if (c == '[' || c == '{') {
+        depth = std::max(depth, block + ++flow);
+      } else if (c == ']' || c == '}') {
+        flow = std::max(0, flow - 1);
+      } else if ((line.compare(k, 4, "rows") == 0 || line.compare(k, 4, "cols") == 0) &&
+                 (k == 0 ||
+                  std::string_view(" \t{,").find(line[k - 1]) != std::string_view::npos)) {
+        size_t v = line.find_first_not_of(" \t", k + 4);
+        if (v == std::string_view::npos || line[v] != ':') continue;
+        v = line.find_first_not_of(" \t", v + 1);
+        const size_t v_end =
+            std::min(line.find_first_of(",}#\r", v == std::string_view::npos ? line.size() : v),
+                     line.size());
+        std::string_view value = v == std::string_view::npos ? "" : line.substr(v, v_end - v);
+        while (!value.empty() && (value.back() == ' ' || value.back() == '\t'))
+          value.remove_suffix(1);
+        long n = 0;
+        const auto [p, ec] = std::from_chars(value.data(), value.data() + value.size(), n);
+        if (value.empty()) {
+          return fail(fmt::format("{}:{}: matrix {} has no value (truncated or malformed file)",
+                                  where, line_no, line.substr(k, 4)));
+        }
+        if (ec != std::errc() || p != value.data() + value.size() || n < 1 || n > kMaxMatrixSide) {
+          return fail(fmt::format("{}:{}: matrix {} must be an integer from 1 to {}, got '{}'",
+                                  where, line_no, line.substr(k, 4), kMaxMatrixSide, value));
+        }
+      }
+    }
+    if (depth > kMaxRigNesting) {
+      return fail(
+          fmt::format("{}:{}: nested more than {} levels deep (a rig file nests 3): not a rig file",
+                      where, line_no, kMaxRigNesting));
+    }
+  }
+  return {};
+}
+
+}  // namespace
+
+namespace {
+
+// The keys of a parsed rig file.
+Result<StereoRig> readRigKeys(const YAML::Node& root, const std::string& where) {
+  if (root.IsNull()) return fail(fmt::format("{}: empty: not valid OpenCV YAML (no keys)", where));
+  if (!root.IsMap()) {
+    return fail(
+        fmt::format("{}: the top level must be a map of keys (image_size, M1, D1, ...)", where));
+  }
+  const YAML::Node size_node = root["image_size"];
+  if (!size_node) return fail(fmt::format("{}: key 'image_size' is missing", where));
+  int wh[2] = {0, 0};
+  if (!size_node.IsSequence() || size_node.size() != 2 ||
+      !YAML::convert<int>::decode(size_node[0], wh[0]) ||
+      !YAML::convert<int>::decode(size_node[1], wh[1])) {
     return fail(
         fmt::format("{}: key 'image_size': expected [width, height] as two integers", where));
   }
-  const cv::Size size(static_cast<int>(size_node[0]), static_cast<int>(size_node[1]));
+  const cv::Size size(wh[0], wh[1]);
 
   StereoRig rig;
-  auto left = readCamera(fs, where, "M1", "D1", size);
+  auto left = readCamera(root, where, "M1", "D1", size);
   if (!left) return std::unexpected(left.error());
-  auto right = readCamera(fs, where, "M2", "D2", size);
+  auto right = readCamera(root, where, "M2", "D2", size);
   if (!right) return std::unexpected(right.error());
   rig.left = *left;
   rig.right = *right;
-  auto r = readMatx33(fs, where, "R");
+  auto r = readMatx33(root, where, "R");
   if (!r) return std::unexpected(r.error());
   rig.r = *r;
-  auto t = readMatrix(fs, where, "T");
+  auto t = readMatrix(root, where, "T");
   if (!t) return std::unexpected(t.error());
   if (t->total() != 3 || (t->rows != 1 && t->cols != 1)) {
     return fail(
@@ -229,13 +415,51 @@ Result<StereoRig> loadRig(const std::filesystem::path& path) {
   }
   rig.t = cv::Vec3d(t->ptr<double>());
 
-  const cv::FileNode rms = fs["rms"];
-  if (rms.empty()) return fail(fmt::format("{}: key 'rms' is missing", where));
-  if (!rms.isReal() && !rms.isInt())
-    return fail(fmt::format("{}: key 'rms': expected a number", where));
-  rig.rms = static_cast<double>(rms);
+  const YAML::Node rms = root["rms"];
+  if (!rms) return fail(fmt::format("{}: key 'rms' is missing", where));
+  const auto rms_value = scalarNumber(rms);
+  if (!rms_value) return fail(fmt::format("{}: key 'rms': expected a number", where));
+  rig.rms = *rms_value;
+  return rig;
+}
 
-  if (auto ok = validateRig(rig, where); !ok) return std::unexpected(ok.error());
+}  // namespace
+
+Result<StereoRig> loadRig(const std::filesystem::path& path) {
+  const std::string where = path.string();
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) {
+    return fail(fmt::format("{}: rig file not found or not a regular file", where));
+  }
+  const auto bytes = std::filesystem::file_size(path, ec);
+  if (ec) return fail(fmt::format("{}: cannot read: {}", where, ec.message()));
+  if (bytes > kMaxRigFileBytes) {
+    return fail(
+        fmt::format("{}: {} bytes is not a rig file (at most {})", where, bytes, kMaxRigFileBytes));
+  }
+  std::string text;
+  {
+    std::ifstream in(path, std::ios::binary);
+    text.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+    if (!in.good() && !in.eof()) return fail(fmt::format("{}: cannot read", where));
+  }
+  if (text.size() > kMaxRigFileBytes) {
+    return fail(fmt::format("{}: more than {} bytes: not a rig file", where, kMaxRigFileBytes));
+  }
+  if (auto ok = checkRigText(text, where); !ok) return std::unexpected(ok.error());
+  // Parsed with yaml-cpp (its depth guard and OSS-Fuzz history), not OpenCV's FileStorage: that
+  // parser looped forever on 24-byte files and threw std::length_error on others (fuzz_rig).
+  // The files are the ones OpenCV writes (saveRig) and reads, keys of its stereo_calib sample.
+  Result<StereoRig> rig = fail("");
+  try {
+    const YAML::Node root = YAML::Load(text);
+    rig = readRigKeys(root, where);
+  } catch (const YAML::Exception& e) {
+    return fail(fmt::format("{}:{}: not valid OpenCV YAML (truncated or malformed): {}", where,
+                            e.mark.line + 1, e.msg));
+  }
+  if (!rig) return rig;
+  if (auto ok = validateRig(*rig, where); !ok) return std::unexpected(ok.error());
   return rig;
 }
 

@@ -23,6 +23,8 @@ struct CsvTable {
   [[nodiscard]] int column(std::initializer_list<const char*> names) const;
   // Cell (row, col) as a number; fails with file:line and the column's name.
   [[nodiscard]] vision::Result<double> number(size_t row, int col) const;
+  // ... as a whole number in [lo, hi] (a cell past what the column can hold is named, not cast).
+  [[nodiscard]] vision::Result<int64_t> integer(size_t row, int col, int64_t lo, int64_t hi) const;
 };
 vision::Result<CsvTable> readCsv(const std::filesystem::path& path);
 

@@ -58,11 +58,26 @@ struct StereoRig {
 // Returns NaN when the rays are parallel.
 [[nodiscard]] cv::Vec3d midpoint(const Ray& a, const Ray& b) noexcept;
 
-// Checks what a loaded or computed rig must satisfy: positive focal lengths, zero skew, finite
-// values, R a rotation (|R^T R - I| < 1e-6, det +1), non-zero baseline, positive image size.
+// The bounds of a real rig. A file past them is corrupt or hostile: every size the tracker
+// allocates follows from these values, so they are refused with the key that broke them.
+inline constexpr int kMaxImageSide = 16384;          // px, each side
+inline constexpr double kMaxFocalPx = 1e5;           // px
+inline constexpr double kMaxBaselineMm = 10000.0;    // calibration units (mm): 10 m
+inline constexpr size_t kMaxRigFileBytes = 1 << 20;  // a rig file is ~2 KB
+inline constexpr int kMaxRigNesting = 32;            // a rig file nests 3 levels
+
+// Checks what a loaded or computed rig must satisfy: positive focal lengths up to kMaxFocalPx,
+// zero skew, the principal point inside the image, finite values, a distortion that maps the
+// image one to one, R a rotation (|R^T R - I| < 1e-6, det +1), a baseline above zero and up to
+// kMaxBaselineMm, an image of 1 to kMaxImageSide px a side.
 // `where` names the source in messages (a file path, or "calibration").
 [[nodiscard]] Result<void> validateRig(const StereoRig& rig, const std::string& where);
 
+// Reads a rig file (the YAML OpenCV writes, read with yaml-cpp: OpenCV's own parser overflowed
+// its stack at 100 000 levels of nesting, allocated 48 GB for `cols: NaN`, looped forever on
+// some 24-byte files and threw std::length_error on others; docs/fuzzing.md). The text is
+// bounded first (kMaxRigFileBytes, nesting kMaxRigNesting, one document, small rows/cols), and
+// every value after (validateRig); each error names the file, and the key or line.
 [[nodiscard]] Result<StereoRig> loadRig(const std::filesystem::path& path);
 [[nodiscard]] Result<void> saveRig(const StereoRig& rig, const std::filesystem::path& path);
 

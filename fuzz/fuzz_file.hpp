@@ -1,0 +1,36 @@
+#pragma once
+// For harnesses whose reader takes a path: the input written to one scratch file per process,
+// and the check every reader owes its user (an error names the file).
+
+#include <unistd.h>
+
+#include <cstdint>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+namespace pulsetrack::fuzz {
+
+inline std::filesystem::path writeInput(const char* name, const uint8_t* data, size_t size) {
+  static const std::filesystem::path dir = [] {
+    auto d =
+        std::filesystem::temp_directory_path() / ("pulsetrack-fuzz." + std::to_string(::getpid()));
+    std::filesystem::create_directories(d);
+    return d;
+  }();
+  const auto path = dir / name;
+  std::ofstream out(path, std::ios::binary | std::ios::trunc);
+  out.write(reinterpret_cast<const char*>(data), static_cast<std::streamsize>(size));
+  return path;
+}
+
+// An error that does not say which file broke is a finding too.
+inline void requireNamed(const std::string& message, const std::filesystem::path& path) {
+  if (message.find(path.filename().string()) == std::string::npos) {
+    std::fprintf(stderr, "error does not name %s: %s\n", path.c_str(), message.c_str());
+    __builtin_trap();
+  }
+}
+
+}  // namespace pulsetrack::fuzz
