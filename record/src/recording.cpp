@@ -13,6 +13,10 @@
 #include <cmath>
 #include <cstring>
 #include <ctime>
+#include <fstream>
+#include <iterator>
+
+#include "pulsetrack/cfg/table_reader.hpp"
 
 namespace pulsetrack::record {
 
@@ -364,12 +368,21 @@ Reader::~Reader() = default;
 namespace {
 
 Result<Manifest> readManifest(const std::filesystem::path& path) {
-  toml::table t;
-  try {
-    t = toml::parse_file(path.string());
-  } catch (const toml::parse_error& e) {
-    return fail(fmt::format("{}:{}: {}", path.string(), e.source().begin.line, e.description()));
+  // Read whole (a manifest is a few hundred bytes; more than 1 MiB is not one), then parsed as
+  // every TOML file of the project is (cfg::parseToml: non-ASCII outside strings refused first).
+  std::error_code ec;
+  const auto size = std::filesystem::file_size(path, ec);
+  if (ec) return fail(fmt::format("{}: cannot read: {}", path.string(), ec.message()));
+  if (size > (1U << 20)) {
+    return fail(fmt::format("{}: {} bytes is not a manifest (at most 1 MiB)", path.string(), size));
   }
+  std::string text;
+  {
+    std::ifstream in(path, std::ios::binary);
+    text.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+  toml::table t;
+  if (std::string error; !cfg::parseToml(text, path.string(), t, error)) return fail(error);
   Manifest m;
   const auto need = [&](const char* key) -> Result<const toml::node*> {
     const toml::node* n = t.get(key);

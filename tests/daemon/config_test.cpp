@@ -51,6 +51,20 @@ void expectError(const std::string& text, const std::string& needle) {
       << "message: " << c.error().message << "\nexpected: " << needle;
 }
 
+// fuzz_daemon_config's finding: a character outside ASCII where TOML expects whitespace or a key
+// (here U+0497) made toml++ 3.3 reach __builtin_unreachable (undefined behaviour). It is refused
+// before toml++ sees it; in strings and comments, where TOML allows it, it still reads.
+TEST(DaemonConfig, ACharacterOutsideAsciiOutsideAStringIsNamedNotUndefined) {
+  expectError("\xd2\x97", "pulsetrackd.toml:1: a character outside ASCII outside a string");
+  expectError("rig_id = \"a\"\n\n[dds] \xc2\xa1\n", "pulsetrackd.toml:3: a character outside");
+  auto ok = parseDaemonConfig(
+      "# Salle d'op\xc3\xa9ration 1\nrig_id = \"bloc-\xc3\xa9\"\n"
+      "[source]\nscene = \"\"\"multi\n\xc3\xa9\"\"\"\n",
+      kShipped);
+  ASSERT_TRUE(ok) << ok.error().message;
+  EXPECT_EQ(ok->rig_id, "bloc-\xc3\xa9");
+}
+
 TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError("rig_id = \"a\"\n[tracker]\nroi_lft = [1, 2, 3, 4]\n",
               "pulsetrackd.toml:3: unknown key 'tracker.roi_lft'");
