@@ -34,6 +34,7 @@ constexpr uint32_t kCodecRaw = 0;
 constexpr uint32_t kCodecZstd = 1;
 // No recording reaches it (248 days at 100 Hz); a larger index is a corrupt or forged record.
 constexpr uint64_t kMaxFrameIndex = (1ULL << 31) - 1;
+constexpr size_t kMaxWarnings = 8;  // listed; more are summed up in one line
 
 struct FileHeader {
   char magic[8];
@@ -172,10 +173,13 @@ Result<Writer> Writer::create(const std::filesystem::path& dir, const Manifest& 
         "width = {}\n"
         "height = {}\n"
         "pixel_format = {}\n"
-        "nominal_fps = {}\n"
+        "{}"
         "created = {}\n",
         m.version, tomlString(m.source), tomlString(m.rig_id), m.width, m.height,
-        tomlString(m.pixel_format), m.nominal_fps, tomlString(m.created));
+        tomlString(m.pixel_format),
+        // Unknown (0) is left out: the reader takes a present nominal_fps to be a rate.
+        m.nominal_fps > 0.0 ? fmt::format("nominal_fps = {}\n", m.nominal_fps) : std::string(),
+        tomlString(m.created));
     const auto path = dir / "manifest.toml";
     const int mfd = ::open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
     if (mfd < 0) return fail(fmt::format("{}: cannot create: {}", path.string(), errnoText(errno)));
@@ -329,6 +333,7 @@ struct Reader::Impl {
   vision::StereoRig rig;
   std::vector<Entry> index;
   std::optional<std::string> truncation;
+  std::vector<std::string> warnings;
   int fd = -1;
   ZSTD_DCtx* dctx = nullptr;
   std::vector<uint8_t> payload;
@@ -379,7 +384,9 @@ Result<Manifest> readManifest(const std::filesystem::path& path) {
   std::string text;
   {
     std::ifstream in(path, std::ios::binary);
+    if (!in) return fail(fmt::format("{}: cannot open: {}", path.string(), std::strerror(errno)));
     text.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+    if (in.bad()) return fail(fmt::format("{}: read error", path.string()));
   }
   toml::table t;
   if (std::string error; !cfg::parseToml(text, path.string(), t, error)) return fail(error);
@@ -525,20 +532,31 @@ Result<Reader> Reader::open(const std::filesystem::path& dir) {
       return fail(fmt::format("{}: record at byte {} (frame {}): {}", fp,
                               static_cast<long long>(offset), h.frame, what));
     };
+    // Order is a warning, not an error: a daemon recording across a camera reopen restarts its
+    // trigger numbering, and a looped replay recorded again repeats its stamps. The frames are
+    // read in file order either way; a tool says so (warnings()) instead of refusing the whole
+    // recording.
+    const auto warn = [&](const std::string& what) {
+      if (impl->warnings.size() < kMaxWarnings) {
+        impl->warnings.push_back(fmt::format("{}: record at byte {} (frame {}): {}", fp,
+                                             static_cast<long long>(offset), h.frame, what));
+      } else if (impl->warnings.size() == kMaxWarnings) {
+        impl->warnings.emplace_back("(more records out of order: not listed)");
+      }
+    };
     if (h.frame > kMaxFrameIndex) {
-      return bad(fmt::format("frame index above {} (248 days at 100 Hz)", kMaxFrameIndex));
-    }
-    if (!impl->index.empty() && h.frame <= impl->index.back().meta.frame) {
-      return bad(fmt::format("frame indices must increase, the previous record is frame {}",
-                             impl->index.back().meta.frame));
+      warn(fmt::format("frame index above {} (248 days at 100 Hz)", kMaxFrameIndex));
+    } else if (!impl->index.empty() && h.frame <= impl->index.back().meta.frame) {
+      warn(fmt::format("frame index does not follow the previous record's frame {}",
+                       impl->index.back().meta.frame));
     }
     if (h.t_left_ns < 0 || h.t_right_ns < 0) {
       return bad(
           fmt::format("negative timestamp (left {} ns, right {} ns)", h.t_left_ns, h.t_right_ns));
     }
     if (!impl->index.empty() && h.t_left_ns < impl->index.back().meta.t_left_ns) {
-      return bad(fmt::format("left timestamp {} ns goes back from the previous frame's {} ns",
-                             h.t_left_ns, impl->index.back().meta.t_left_ns));
+      warn(fmt::format("left timestamp {} ns goes back from the previous frame's {} ns",
+                       h.t_left_ns, impl->index.back().meta.t_left_ns));
     }
     if (h.flags != 0) return bad(fmt::format("flags {:#x} are reserved (0 in version 1)", h.flags));
     if (h.codec != kCodecRaw && h.codec != kCodecZstd)
@@ -575,6 +593,7 @@ const vision::StereoRig& Reader::rig() const { return impl_->rig; }
 size_t Reader::size() const { return impl_->index.size(); }
 const FrameMeta& Reader::meta(size_t index) const { return impl_->index.at(index).meta; }
 const std::optional<std::string>& Reader::truncation() const { return impl_->truncation; }
+const std::vector<std::string>& Reader::warnings() const { return impl_->warnings; }
 const std::filesystem::path& Reader::dir() const { return impl_->dir; }
 
 Result<void> Reader::read(size_t index, cv::Mat& left, cv::Mat& right) {

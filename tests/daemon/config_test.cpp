@@ -63,6 +63,14 @@ TEST(DaemonConfig, ACharacterOutsideAsciiOutsideAStringIsNamedNotUndefined) {
       kShipped);
   ASSERT_TRUE(ok) << ok.error().message;
   EXPECT_EQ(ok->rig_id, "bloc-\xc3\xa9");
+  // A multi-line string may end with one or two quotes of its own before the delimiter: the
+  // scan must not take the extra quote for the start of a new string (review finding).
+  expectError("rig_id = \"\"\"x\"\"\"\" \xd2\x97\n", "pulsetrackd.toml:1: a character outside");
+  expectError("rig_id = '''x'''' \xd2\x97\n", "pulsetrackd.toml:1: a character outside");
+  // A byte order mark is not a character of the file.
+  auto bom = parseDaemonConfig("\xEF\xBB\xBFrig_id = \"a\"\n", kShipped);
+  ASSERT_TRUE(bom) << bom.error().message;
+  EXPECT_EQ(bom->rig_id, "a");
 }
 
 TEST(DaemonConfig, BadInputNamesFileLineAndKey) {

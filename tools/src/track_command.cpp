@@ -170,6 +170,7 @@ int runTrack(const TrackArgs& a) {
     if (!r) return commandError("track", r.error().message);
     if (const auto& cut = r->truncation(); cut.has_value())
       fmt::print(stderr, "warning: {}: {}\n", a.input, cut.value());
+    for (const std::string& w : r->warnings()) fmt::print(stderr, "warning: {}\n", w);
     if (r->size() == 0)
       return commandError("track",
                           fmt::format("{}: the recording holds no complete frame", a.input));

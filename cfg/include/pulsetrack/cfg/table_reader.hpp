@@ -164,7 +164,9 @@ class TableReader {
 inline bool checkTomlText(const std::string& text, const std::string& file, std::string& error) {
   size_t line = 1;
   const size_t n = text.size();
-  for (size_t i = 0; i < n; ++i) {
+  // A UTF-8 byte order mark (Windows editors write one): toml++ skips it.
+  const size_t start = text.starts_with("\xEF\xBB\xBF") ? 3 : 0;
+  for (size_t i = start; i < n; ++i) {
     const char c = text[i];
     if (c == '\n') {
       ++line;
@@ -182,7 +184,11 @@ inline bool checkTomlText(const std::string& text, const std::string& file, std:
           ++i;
         } else if (text[i] == c &&
                    (!multi || (i + 2 < n && text[i + 1] == c && text[i + 2] == c))) {
-          if (multi) i += 2;
+          if (multi) {
+            i += 2;
+            // A multi-line string may end in one or two quotes of its own (TOML 1.0).
+            for (int extra = 0; extra < 2 && i + 1 < n && text[i + 1] == c; ++extra) ++i;
+          }
           break;
         }
       }

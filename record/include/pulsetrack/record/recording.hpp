@@ -86,6 +86,9 @@ class Reader {
   [[nodiscard]] size_t size() const;
   [[nodiscard]] const FrameMeta& meta(size_t index) const;
   [[nodiscard]] const std::optional<std::string>& truncation() const;
+  // Records out of order (a frame index that does not increase or is past 2^31-1, a left stamp
+  // going back): read in file order, each named here (the first 8) for the tools to print.
+  [[nodiscard]] const std::vector<std::string>& warnings() const;
   [[nodiscard]] const std::filesystem::path& dir() const;
 
   // Decodes frame `index` into left/right (reallocated only if their size or type differ).
