@@ -1,16 +1,13 @@
 // libFuzzer: the daemon's TOML config (daemon/config: pulsetrackd and --check-config).
 // Input: the file's text.
 
-#include <string>
-
+#include "fuzz_file.hpp"
 #include "pulsetrack/daemon/config.hpp"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
-  const std::string text(reinterpret_cast<const char*>(data), size);
-  auto config = pulsetrack::daemon::parseDaemonConfig(text, "fuzz-pulsetrackd.toml");
-  if (!config && config.error().message.find("fuzz-pulsetrackd.toml") == std::string::npos) {
-    std::fprintf(stderr, "error does not name the file: %s\n", config.error().message.c_str());
-    __builtin_trap();
-  }
+  const std::filesystem::path name = "fuzz-pulsetrackd.toml";
+  auto config =
+      pulsetrack::daemon::parseDaemonConfig(pulsetrack::fuzz::inputText(data, size), name);
+  if (!config) pulsetrack::fuzz::requireNamed(config.error().message, name);
   return 0;
 }

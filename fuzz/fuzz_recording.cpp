@@ -4,14 +4,7 @@
 // first input byte picks the manifest.toml variant instead when it is 'M' (the rest is the
 // manifest's text), so the manifest parser is fuzzed by the same harness.
 
-#include <unistd.h>
-
-#include <cstdint>
-#include <cstdio>
-#include <filesystem>
-#include <fstream>
-#include <string>
-
+#include "fuzz_file.hpp"
 #include "pulsetrack/record/recording.hpp"
 
 namespace {
@@ -38,7 +31,7 @@ const char* kRig =
 
 const fs::path& folder() {
   static const fs::path dir = [] {
-    fs::path d = fs::temp_directory_path() / ("fuzz_recording." + std::to_string(::getpid()));
+    fs::path d = pulsetrack::fuzz::scratchDir() / "recording";
     fs::create_directories(d);
     std::ofstream(d / "rig.yaml") << kRig;
     return d;
@@ -46,28 +39,20 @@ const fs::path& folder() {
   return dir;
 }
 
-void put(const fs::path& p, const uint8_t* data, size_t size) {
-  std::ofstream out(p, std::ios::binary | std::ios::trunc);
-  out.write(reinterpret_cast<const char*>(data), static_cast<std::streamsize>(size));
-}
-
 }  // namespace
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   const fs::path& dir = folder();
   if (size > 0 && data[0] == 'M') {
-    put(dir / "manifest.toml", data + 1, size - 1);
-    put(dir / "frames.ptv", nullptr, 0);
+    pulsetrack::fuzz::writeFile(dir / "manifest.toml", data + 1, size - 1);
+    pulsetrack::fuzz::writeFile(dir / "frames.ptv", nullptr, 0);
   } else {
     std::ofstream(dir / "manifest.toml", std::ios::trunc) << kManifest;
-    put(dir / "frames.ptv", data, size);
+    pulsetrack::fuzz::writeFile(dir / "frames.ptv", data, size);
   }
   auto reader = pulsetrack::record::Reader::open(dir);
   if (!reader) {
-    if (reader.error().message.find(dir.string()) == std::string::npos) {
-      std::fprintf(stderr, "error does not name the file: %s\n", reader.error().message.c_str());
-      __builtin_trap();
-    }
+    pulsetrack::fuzz::requireNamed(reader.error().message, dir);
     return 0;
   }
   cv::Mat left, right;

@@ -54,15 +54,24 @@ vision::Result<double> CsvTable::number(size_t row, int col) const {
 }
 
 vision::Result<int64_t> CsvTable::integer(size_t row, int col, int64_t lo, int64_t hi) const {
-  auto v = number(row, col);
-  if (!v) return std::unexpected(v.error());
-  // Compared as doubles before the cast: a double past int64's range does not convert.
-  if (*v != std::floor(*v) || !(*v >= double(lo) && *v <= double(hi))) {
-    return fail(fmt::format("{}:{}: column '{}': '{}' is not a whole number from {} to {}", file,
-                            lines[row], header[static_cast<size_t>(col)],
-                            rows[row][static_cast<size_t>(col)], lo, hi));
+  const std::string& cell = rows[row][static_cast<size_t>(col)];
+  // Read as an integer, not through a double (a stamp in ns past 2^53 would be rounded); a cell
+  // written as a whole double ("12.0", "1e3") is taken when it is exact.
+  int64_t v = 0;
+  const auto [ptr, ec] = std::from_chars(cell.data(), cell.data() + cell.size(), v);
+  bool whole = ec == std::errc() && ptr == cell.data() + cell.size() && !cell.empty();
+  if (!whole) {
+    auto d = number(row, col);
+    if (!d) return std::unexpected(d.error());
+    // Compared as doubles before the cast: a double past int64's range does not convert.
+    whole = *d == std::floor(*d) && *d >= -9.0e18 && *d <= 9.0e18;
+    if (whole) v = static_cast<int64_t>(*d);
   }
-  return static_cast<int64_t>(*v);
+  if (!whole || v < lo || v > hi) {
+    return fail(fmt::format("{}:{}: column '{}': '{}' is not a whole number from {} to {}", file,
+                            lines[row], header[static_cast<size_t>(col)], cell, lo, hi));
+  }
+  return v;
 }
 
 vision::Result<CsvTable> readCsv(const std::filesystem::path& path) {

@@ -2,9 +2,6 @@
 
 #include <fmt/format.h>
 
-#include <fstream>
-#include <sstream>
-
 #include "pulsetrack/cfg/table_reader.hpp"
 
 namespace pulsetrack::daemon {
@@ -197,11 +194,9 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
 }
 
 vision::Result<DaemonConfig> loadDaemonConfig(const std::filesystem::path& path) {
-  std::ifstream in(path);
-  if (!in) return fail(fmt::format("{}: cannot open the config file", path.string()));
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return parseDaemonConfig(ss.str(), path);
+  std::string text;
+  if (std::string error; !cfg::readTomlText(path, "config file", text, error)) return fail(error);
+  return parseDaemonConfig(text, path);
 }
 
 }  // namespace pulsetrack::daemon

@@ -373,21 +373,10 @@ Reader::~Reader() = default;
 namespace {
 
 Result<Manifest> readManifest(const std::filesystem::path& path) {
-  // Read whole (a manifest is a few hundred bytes; more than 1 MiB is not one), then parsed as
-  // every TOML file of the project is (cfg::parseToml: non-ASCII outside strings refused first).
-  std::error_code ec;
-  const auto size = std::filesystem::file_size(path, ec);
-  if (ec) return fail(fmt::format("{}: cannot read: {}", path.string(), ec.message()));
-  if (size > (1U << 20)) {
-    return fail(fmt::format("{}: {} bytes is not a manifest (at most 1 MiB)", path.string(), size));
-  }
+  // Read and parsed as every TOML file of the project is (cfg: bounded size, non-ASCII outside
+  // strings refused before toml++ sees it).
   std::string text;
-  {
-    std::ifstream in(path, std::ios::binary);
-    if (!in) return fail(fmt::format("{}: cannot open: {}", path.string(), std::strerror(errno)));
-    text.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-    if (in.bad()) return fail(fmt::format("{}: read error", path.string()));
-  }
+  if (std::string error; !cfg::readTomlText(path, "manifest", text, error)) return fail(error);
   toml::table t;
   if (std::string error; !cfg::parseToml(text, path.string(), t, error)) return fail(error);
   Manifest m;

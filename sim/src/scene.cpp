@@ -3,9 +3,7 @@
 #include <fmt/format.h>
 #include <toml++/toml.h>
 
-#include <fstream>
 #include <set>
-#include <sstream>
 
 #include "pulsetrack/cfg/table_reader.hpp"
 
@@ -207,11 +205,9 @@ vision::Result<SceneSpec> parseScene(const std::string& text, const std::filesys
 }
 
 vision::Result<SceneSpec> loadScene(const std::filesystem::path& path) {
-  std::ifstream in(path);
-  if (!in) return fail(fmt::format("{}: cannot open scene file", path.string()));
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return parseScene(ss.str(), path);
+  std::string text;
+  if (std::string error; !cfg::readTomlText(path, "scene file", text, error)) return fail(error);
+  return parseScene(text, path);
 }
 
 }  // namespace pulsetrack::sim

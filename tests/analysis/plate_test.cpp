@@ -210,6 +210,14 @@ TEST(ReferenceFiles, NdiQuaternionsMatricesMissingRowsAndBadInput) {
               "777777777777777777777' is not a whole number from 0 to 2147483647");
   expectError("b7.csv", "t_ns,qw,qx,qy,qz,tx,ty,tz\n1e300,1,0,0,0,0,0,0\n",
               "b7.csv:2: column 't_ns': '1e300' is not a whole number");
+  {
+    // A system-clock stamp in ns (past 2^53) is read exactly, not through a double.
+    std::ofstream(dir / "ns.csv")
+        << "t_ns,qw,qx,qy,qz,tx,ty,tz\n1733130000123456789,1,0,0,0,0,0,0\n";
+    auto ns = readPoses(dir / "ns.csv");
+    ASSERT_TRUE(ns) << ns.error().message;
+    EXPECT_EQ(ns->poses.at(0).t_ns, 1733130000123456789LL);
+  }
   expectError("b8.csv", "t,qw,qx,qy,qz,tx,ty,tz\n1e300,1,0,0,0,0,0,0\n",
               "b8.csv:2: column 't': 1e+300 s is not a time");
   std::ofstream(dir / "d9.csv") << "divot,x,y,z\n1e300,0,0,0\n";

@@ -326,7 +326,9 @@ TEST(CheckCommand, HostileFieldsAreRefusedPrintably) {
   std::copy_n(good, 4, c.roi_left);
   for (const double depth : {std::nan(""), 1e308, -0.02, 0.0, HUGE_VAL}) {
     c.depth_tolerance_m = depth;
-    EXPECT_EQ(check().kind, CommandKind::kRefused) << depth;
+    const auto r = check();
+    EXPECT_EQ(r.kind, CommandKind::kRefused) << depth;
+    EXPECT_NE(r.refusal.find("mm: must be in (0, 500]"), std::string::npos) << r.refusal;
   }
 }
 

@@ -138,7 +138,8 @@ TEST(SceneFile, TheRightCameraCanDiffer) {
 TEST(SceneFile, MissingFileIsNamed) {
   auto s = loadScene("/nonexistent/scene.toml");
   ASSERT_FALSE(s);
-  EXPECT_EQ(s.error().message, "/nonexistent/scene.toml: cannot open scene file");
+  EXPECT_EQ(s.error().message,
+            "/nonexistent/scene.toml: cannot open the scene file: No such file or directory");
 }
 
 }  // namespace

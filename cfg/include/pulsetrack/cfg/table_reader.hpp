@@ -8,9 +8,13 @@
 #include <toml++/toml.h>
 
 #include <cmath>
+#include <cstdint>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <set>
-#include <sstream>
 #include <string>
+#include <system_error>
 #include <vector>
 
 namespace pulsetrack::cfg {
@@ -199,6 +203,34 @@ inline bool checkTomlText(const std::string& text, const std::string& file, std:
           file, line);
       return false;
     }
+  }
+  return true;
+}
+
+// A project TOML file's text (config, scene, manifest: each a few KB), read whole. More than 1 MiB
+// is not one of them; `what` names the kind of file in the messages.
+inline bool readTomlText(const std::filesystem::path& path, const char* what, std::string& text,
+                         std::string& error) {
+  constexpr std::uintmax_t kMaxBytes = 1U << 20;
+  std::error_code ec;
+  const std::uintmax_t size = std::filesystem::file_size(path, ec);
+  if (ec) {
+    error = fmt::format("{}: cannot open the {}: {}", path.string(), what, ec.message());
+    return false;
+  }
+  if (size > kMaxBytes) {
+    error = fmt::format("{}: {} bytes is not a {} (at most 1 MiB)", path.string(), size, what);
+    return false;
+  }
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    error = fmt::format("{}: cannot open the {}", path.string(), what);
+    return false;
+  }
+  text.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  if (in.bad()) {
+    error = fmt::format("{}: read error", path.string());
+    return false;
   }
   return true;
 }

@@ -64,7 +64,6 @@ inline constexpr int kMaxImageSide = 16384;          // px, each side
 inline constexpr double kMaxFocalPx = 1e5;           // px
 inline constexpr double kMaxBaselineMm = 10000.0;    // calibration units (mm): 10 m
 inline constexpr size_t kMaxRigFileBytes = 1 << 20;  // a rig file is ~2 KB
-inline constexpr int kMaxRigNesting = 32;            // a rig file nests 3 levels
 
 // Checks what a loaded or computed rig must satisfy: positive focal lengths up to kMaxFocalPx,
 // zero skew, the principal point inside the image, finite values, a distortion that maps the
@@ -75,9 +74,10 @@ inline constexpr int kMaxRigNesting = 32;            // a rig file nests 3 level
 
 // Reads a rig file (the YAML OpenCV writes, read with yaml-cpp: OpenCV's own parser overflowed
 // its stack at 100 000 levels of nesting, allocated 48 GB for `cols: NaN`, looped forever on
-// some 24-byte files and threw std::length_error on others; docs/fuzzing.md). The text is
-// bounded first (kMaxRigFileBytes, nesting kMaxRigNesting, one document, small rows/cols), and
-// every value after (validateRig); each error names the file, and the key or line.
+// some 24-byte files and threw std::length_error on others; docs/fuzzing.md). yaml-cpp bounds the
+// nesting itself (its depth guard); the file's size is bounded here (kMaxRigFileBytes), each
+// matrix's rows and cols as it is read, and every value after (validateRig); each error names
+// the file, and the key or line.
 [[nodiscard]] Result<StereoRig> loadRig(const std::filesystem::path& path);
 [[nodiscard]] Result<void> saveRig(const StereoRig& rig, const std::filesystem::path& path);
 
