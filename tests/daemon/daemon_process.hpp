@@ -3,15 +3,18 @@
 // folder (the simulated rig unless told otherwise), systemd played on a notify socket the test
 // binds, its notifications collected.
 
+#include <poll.h>
 #include <spawn.h>
 #include <sys/socket.h>
 #include <sys/un.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <chrono>
 #include <fstream>
 #include <functional>
+#include <mutex>
 #include <string>
 #include <thread>
 #include <vector>
@@ -36,7 +39,8 @@ struct DaemonOptions {
 struct Daemon {
   pid_t pid = 0;
   int notify_fd = -1;
-  std::vector<std::pair<double, std::string>> notes;  // (seconds since start, datagram)
+  // (seconds since start, datagram); read it after wait().
+  std::vector<std::pair<double, std::string>> notes;
 
   // `source_extra`: lines in [source] (e.g. another kind); `opt`: the rig, its namespace, more
   // config, the files' names.
@@ -75,33 +79,57 @@ struct Daemon {
     EXPECT_EQ(posix_spawn(&pid, args[0].c_str(), nullptr, nullptr, argv.data(), environ), 0);
     unsetenv("NOTIFY_SOCKET");
     unsetenv("WATCHDOG_USEC");
+    // The notifications are read all the time, as systemd reads them: a full datagram queue
+    // (net.unix.max_dgram_qlen, 10 on some machines) would block the daemon's sd_notify and
+    // with it its health loop.
+    reader_ = std::thread([this, t0 = std::chrono::steady_clock::now()] {
+      char buf[4096];
+      while (!stop_.load()) {
+        pollfd p{notify_fd, POLLIN, 0};
+        if (poll(&p, 1, 50) <= 0) continue;
+        for (;;) {
+          const ssize_t n = recv(notify_fd, buf, sizeof buf, 0);
+          if (n <= 0) break;
+          const double t =
+              std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+          const std::lock_guard<std::mutex> lock(mutex_);
+          notes.emplace_back(t, std::string(buf, static_cast<size_t>(n)));
+        }
+      }
+    });
   }
-  void drain(double t) {
-    char buf[4096];
-    for (;;) {
-      const ssize_t n = recv(notify_fd, buf, sizeof buf, 0);
-      if (n <= 0) return;
-      notes.emplace_back(t, std::string(buf, static_cast<size_t>(n)));
-    }
-  }
+  // Kept for the tests' loops: the notifications are read by a thread of their own (below).
+  void drain(double /*t*/) {}
   // Waits for the daemon to exit, reading its notifications meanwhile (a full datagram queue
   // would block its sd_notify, as it would under a systemd that stopped reading).
-  int wait(const std::function<double()>& secs) {
+  int wait(const std::function<double()>& /*secs*/) {
     int status = 0;
     for (;;) {
-      drain(secs());
       const pid_t r = waitpid(pid, &status, WNOHANG);
       if (r == pid || r < 0) break;
       std::this_thread::sleep_for(std::chrono::milliseconds(20));
     }
-    drain(secs());
+    stopReading();
     return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   }
   ~Daemon() {
+    stopReading();
     if (notify_fd >= 0) close(notify_fd);
   }
   Daemon(const Daemon&) = delete;
   Daemon& operator=(const Daemon&) = delete;
+
+ private:
+  // Stops the reader after a last read of what the daemon sent; `notes` is then complete.
+  void stopReading() {
+    if (!reader_.joinable()) return;
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    stop_ = true;
+    reader_.join();
+  }
+  std::thread reader_;
+  std::atomic<bool> stop_{false};
+  std::mutex mutex_;
 };
 
 }  // namespace pulsetrack
