@@ -1,10 +1,13 @@
 // End-to-end latency of pulsetrackd: a frame pair handed over by the source -> the features
 // sample received by a subscriber process over DDS (loopback). The daemon replays a recording
 // from memory at 30, 60 and 120 Hz, restamping each pair on hand-over as a live camera would
-// (the stamp is CLOCK_MONOTONIC, shared by both processes); this process subscribes and takes
-// now - stamp per sample. Prints p50, p99, p99.9, max and the frames lost (gaps in the frame
-// numbers received), with the daemon's own drop and deadline counts from its health.
-//   daemon_latency [--seconds S] [--rates 30,60,120] [--features N]
+// (the daemon maps that time onto the system clock for the stamp, as for a live camera); this
+// process subscribes and takes CLOCK_REALTIME now - stamp per sample. Prints p50, p99, p99.9, max
+// and the frames lost (gaps in the frame numbers received), with the daemon's own drop and deadline
+// counts from its health. With
+// --security, the same with DDS Security (scripts/security's keystore: authentication, signed
+// RTPS, encrypted topics), to see what security costs.
+//   daemon_latency [--seconds S] [--rates 30,60,120] [--features N] [--security off|on|both]
 // The issue's run is 5 minutes per rate: --seconds 300.
 
 #include <spawn.h>
@@ -15,11 +18,13 @@
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <ctime>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "pulsetrack/dds/dds.hpp"
@@ -61,6 +66,11 @@ int main(int argc, char** argv) try {
       ->delimiter(',')
       ->check(CLI::Range(1.0, 1000.0));
   app.add_option("--features", features, "Features tracked")->check(CLI::Range(1, 1000));
+  std::string security = "off";
+  app.add_option("--security", security,
+                 "DDS Security: off, on (scripts/security's keystore) or both, one after the other")
+      ->check(CLI::IsMember({"off", "on", "both"}))
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   setenv("CYCLONEDDS_URI", pulsetrack::dds::kLoopbackUri, 1);
   const auto dir =
@@ -74,20 +84,49 @@ int main(int argc, char** argv) try {
     std::fprintf(stderr, "daemon_latency: pulsetrack simulate failed\n");
     return 1;
   }
+  const std::string keystore = (dir / "keystore").string();
+  if (security != "off") {
+    const std::string script = std::string(PULSETRACK_SOURCE_DIR) + "/scripts/security";
+    for (const auto& args : std::vector<std::vector<std::string>>{
+             {script, "init", keystore},
+             {script, "add-participant", keystore, "/pulsetrack/daemon", "--role", "daemon"},
+             {script, "add-participant", keystore, "/bench/subscriber", "--role", "subscriber"}}) {
+      if (waitExit(spawn(args)) != 0) {
+        std::fprintf(stderr, "daemon_latency: scripts/security %s failed\n", args[1].c_str());
+        return 1;
+      }
+    }
+  }
   std::printf("frame handed over -> features sample received by another process (DDS, loopback)\n");
-  std::printf("%6s %8s %9s %9s %9s %9s %7s %8s %9s\n", "rate", "samples", "p50 us", "p99 us",
-              "p99.9 us", "max us", "lost", "drops", "deadline");
+  std::printf("%-10s %6s %8s %9s %9s %9s %9s %7s %8s %9s\n", "DDS", "rate", "samples", "p50 us",
+              "p99 us", "p99.9 us", "max us", "lost", "drops", "deadline");
   int domain = 90;
-  for (const double rate : rates) {
+  std::vector<std::pair<bool, double>> runs;
+  for (const bool secured : {false, true}) {
+    if ((secured && security == "off") || (!secured && security == "on")) continue;
+    for (const double rate : rates) runs.emplace_back(secured, rate);
+  }
+  for (const auto& [secured, rate] : runs) {
     const auto cfg = dir / "pulsetrackd.toml";
     std::ofstream(cfg) << "rig_id = \"bench\"\n[dds]\ndomain_id = " << domain
                        << "\n[source]\nkind = \"replay\"\nrecording = \"" << rec
                        << "\"\npace = \"rate\"\nfps = " << rate
                        << "\nloop = true\npreload = true\n[tracker]\nmax_features = " << features
                        << "\n[health]\nperiod_ms = 500\n";
+    if (secured) {
+      std::ofstream(cfg, std::ios::app)
+          << "[security]\nenclave = \"" << keystore << "/enclaves/pulsetrack/daemon\"\n";
+    }
     const pid_t d = spawn({PULSETRACKD, "-c", cfg.string(), "--run-for",
                            std::to_string(static_cast<int>(seconds + 4))});
-    auto p = pulsetrack::dds::Participant::create(static_cast<uint32_t>(domain));
+    const auto files =
+        pulsetrack::dds::SecurityFiles::inEnclave(keystore + "/enclaves/bench/subscriber");
+    auto p = pulsetrack::dds::Participant::create(static_cast<uint32_t>(domain),
+                                                  secured ? &files : nullptr);
+    if (!p) {
+      std::fprintf(stderr, "daemon_latency: %s\n", p.error().message.c_str());
+      return 1;
+    }
     auto reader = pulsetrack::dds::Reader::create(*p, pulsetrack::dds::kFeaturesTopic,
                                                   &pulsetrack_msgs_msg_dds__Features__desc,
                                                   pulsetrack::dds::Profile::kSensorData);
@@ -104,8 +143,11 @@ int main(int argc, char** argv) try {
     const int64_t t_end = t_start + static_cast<int64_t>(seconds * 1e9);
     while (pulsetrack::rt::monotonicNs() < t_end) {
       if (!reader->takeOne(&f, std::chrono::milliseconds(100))) continue;
-      const int64_t now = pulsetrack::rt::monotonicNs();
-      if (now < t_start) continue;
+      // The stamp is on the system clock (the daemon maps the hand-over time onto it).
+      if (pulsetrack::rt::monotonicNs() < t_start) continue;
+      timespec ts{};
+      clock_gettime(CLOCK_REALTIME, &ts);
+      const int64_t now = int64_t{ts.tv_sec} * 1'000'000'000 + ts.tv_nsec;
       const int64_t stamp = int64_t{f.header.stamp.sec} * 1'000'000'000 + f.header.stamp.nanosec;
       us.push_back(static_cast<double>(now - stamp) * 1e-3);
       if (received == 0) first = f.frame;
@@ -121,9 +163,9 @@ int main(int argc, char** argv) try {
                                       static_cast<size_t>(q * static_cast<double>(us.size())))];
     };
     const uint64_t expected = received > 0 ? last - first + 1 : 0;
-    std::printf("%4.0f Hz %8zu %9.0f %9.0f %9.0f %9.0f %7llu %8llu %9llu\n", rate, us.size(),
-                pct(0.5), pct(0.99), pct(0.999), us.empty() ? 0.0 : us.back(),
-                static_cast<unsigned long long>(expected - received),
+    std::printf("%-10s %4.0f Hz %8zu %9.0f %9.0f %9.0f %9.0f %7llu %8llu %9llu\n",
+                secured ? "secured" : "unsecured", rate, us.size(), pct(0.5), pct(0.99), pct(0.999),
+                us.empty() ? 0.0 : us.back(), static_cast<unsigned long long>(expected - received),
                 static_cast<unsigned long long>(h.drops),
                 static_cast<unsigned long long>(h.deadline_misses));
     std::fflush(stdout);

@@ -81,6 +81,38 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     else if (topics)
       c.topics = *topics;
   }
+  if (const toml::table* t = r.table("security")) {
+    // DDS Security: an SROS2 enclave folder, or each file (overriding the enclave's).
+    TableReader sec(*t, file, "security", &error);
+    const std::string enclave = sec.string("enclave", "");
+    dds::SecurityFiles f = dds::SecurityFiles::inEnclave(path.parent_path() / enclave);
+    const auto named = [&](const char* key, std::filesystem::path& target) {
+      const std::string value = sec.string(key, "");
+      if (!value.empty()) target = path.parent_path() / value;
+      return !value.empty();
+    };
+    int given = 0;
+    given += static_cast<int>(named("identity_ca", f.identity_ca));
+    given += static_cast<int>(named("certificate", f.certificate));
+    given += static_cast<int>(named("private_key", f.private_key));
+    given += static_cast<int>(named("permissions_ca", f.permissions_ca));
+    given += static_cast<int>(named("governance", f.governance));
+    given += static_cast<int>(named("permissions", f.permissions));
+    sec.finish();
+    if (enclave.empty() && given < 6 && error.empty()) {
+      error = fmt::format(
+          "{}: [security] needs enclave = \"DIR\" (an SROS2 enclave folder) or all six files "
+          "(identity_ca, certificate, private_key, permissions_ca, governance, permissions); "
+          "remove [security] to run unsecured",
+          file);
+    }
+    c.security = f;
+    if (c.domain_id > 230 && error.empty()) {
+      error =
+          fmt::format("{}: [dds] domain_id {} with [security]: DDS Security's domains are 0-230",
+                      file, c.domain_id);
+    }
+  }
   if (const toml::table* t = r.table("source")) {
     TableReader s(*t, file, "source", &error);
     const std::string kind = s.string("kind", "sim", {"sim", "replay", "v4l2", "libcamera"});

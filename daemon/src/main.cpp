@@ -6,6 +6,7 @@
 #include <CLI/CLI.hpp>
 #include <csignal>
 #include <cstdio>
+#include <optional>
 #include <thread>
 
 #include "pulsetrack/daemon/config.hpp"
@@ -135,13 +136,26 @@ int run(int argc, char** argv) {
     log_config.error("{}: [tracker] {}", config_path, roi.error().message);
     return 1;
   }
+  // DDS Security's files are checked before anything runs (and by --check-config): when
+  // [security] is configured and a file is wrong, the daemon does not start, unsecured or not.
+  std::string security = "unsecured";
+  const std::optional<dds::SecurityFiles>& configured = config->security;
+  const dds::SecurityFiles* security_files = configured.has_value() ? &*configured : nullptr;
+  if (security_files != nullptr) {
+    auto subject = security_files->check();
+    if (!subject) {
+      daemon::log::get("dds").error("{}: [security] {}", config_path, subject.error().message);
+      return 1;
+    }
+    security = "secured as " + *subject;
+  }
   if (check) {
-    std::printf("%s: ok (source %s, rig %s, DDS domain %u, topics %s)\n", config_path.c_str(),
+    std::printf("%s: ok (source %s, rig %s, DDS domain %u, topics %s, %s)\n", config_path.c_str(),
                 source->name().c_str(), config->rig_id.c_str(), config->domain_id,
-                config->topics.features.c_str());
+                config->topics.features.c_str(), security.c_str());
     return 0;
   }
-  auto participant = dds::Participant::create(config->domain_id);
+  auto participant = dds::Participant::create(config->domain_id, security_files);
   if (!participant) {
     daemon::log::get("dds").error("{}", participant.error().message);
     return 1;
@@ -184,8 +198,14 @@ int run(int argc, char** argv) {
     return 1;
   }
   for (const std::string& w : *started) log_pipeline.warn("{}", w);
-  log_pipeline.info("running, rig {}, DDS domain {}, topics {}", config->rig_id, config->domain_id,
-                    config->topics.features);
+  log_pipeline.info("running, rig {}, DDS domain {}, topics {}, DDS {}", config->rig_id,
+                    config->domain_id, config->topics.features, participant->securityState());
+  if (security_files == nullptr) {
+    daemon::log::get("dds").warn(
+        "DDS Security is off: any participant on domain {} can command this appliance (lab use "
+        "only; [security] in the config, docs/security.md)",
+        config->domain_id);
+  }
   const daemon::Notifier notifier;
   const auto period = std::chrono::milliseconds(config->health_period_ms);
   const auto t0 = std::chrono::steady_clock::now();

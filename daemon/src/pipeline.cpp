@@ -459,6 +459,7 @@ State Pipeline::health(const Notifier& notifier) {
   h.clock_synchronized = sync.synchronized;
   std::string clock_state = fmt::format("CLOCK_REALTIME {}; {} steps", sync.text, clock_.steps());
   h.clock_state = clock_state.data();
+  h.security_state = const_cast<char*>(participant_.securityState().c_str());
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
   std::string err =
       quiet    ? fmt::format("no frame from the source for {} ms{}", (now - last_frame) / 1'000'000,

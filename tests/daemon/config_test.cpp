@@ -51,6 +51,30 @@ void expectError(const std::string& text, const std::string& needle) {
       << "message: " << c.error().message << "\nexpected: " << needle;
 }
 
+TEST(DaemonConfig, SecurityNamesAnEnclaveOrEveryFile) {
+  // Shipped: no [security] (unsecured, lab use).
+  auto c = parseDaemonConfig("", "/etc/pulsetrack/pulsetrackd.toml");
+  ASSERT_TRUE(c);
+  EXPECT_FALSE(c->security.has_value());
+  // An enclave, relative to the config file's folder; one file overridden.
+  c = parseDaemonConfig(
+      "[security]\nenclave = \"keystore/enclaves/pulsetrack/daemon\"\n"
+      "permissions = \"/srv/p.p7s\"\n",
+      "/etc/pulsetrack/pulsetrackd.toml");
+  ASSERT_TRUE(c) << c.error().message;
+  const std::optional<dds::SecurityFiles>& security = c->security;
+  ASSERT_TRUE(security.has_value());
+  const dds::SecurityFiles files = security.value_or(dds::SecurityFiles{});
+  EXPECT_EQ(files.certificate, "/etc/pulsetrack/keystore/enclaves/pulsetrack/daemon/cert.pem");
+  EXPECT_EQ(files.governance, "/etc/pulsetrack/keystore/enclaves/pulsetrack/daemon/governance.p7s");
+  EXPECT_EQ(files.permissions, "/srv/p.p7s");
+  // Neither an enclave nor all six files; a domain DDS Security cannot use; an unknown key.
+  expectError("[security]\ncertificate = \"c.pem\"\n", "[security] needs enclave = \"DIR\"");
+  expectError("[dds]\ndomain_id = 231\n[security]\nenclave = \"e\"\n",
+              "[dds] domain_id 231 with [security]: DDS Security's domains are 0-230");
+  expectError("[security]\nenclave = \"e\"\ncert = \"c.pem\"\n", "security.cert");
+}
+
 // fuzz_daemon_config's finding: a character outside ASCII where TOML expects whitespace or a key
 // (here U+0497) made toml++ 3.3 reach __builtin_unreachable (undefined behaviour). It is refused
 // before toml++ sees it; in strings and comments, where TOML allows it, it still reads.

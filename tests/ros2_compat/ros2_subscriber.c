@@ -22,7 +22,8 @@
 //   deformation frame sec nanosec rig dx dy dz vx vy vz ok total cx cy cz velocity_delay
 //            displacement_sigma velocity_sigma detections continuous frame_id
 //   health sec nanosec rig state state_text last_error source source_state trigger_state
-//            recorder_state tracking_state clock_state clock_synchronized fps frames drops
+//            recorder_state tracking_state clock_state security_state clock_synchronized fps
+//            frames drops
 //            deadline_misses unpaired missing_triggers stages="name:p50/p99/max,..." frame_id
 // then "summary features=N deformation=N health=N". Exit 0: every requested count reached;
 // 1: timeout (or interrupted) first, with what matched on stderr; 2: bad usage or a DDS error
@@ -214,6 +215,7 @@ static void printHealth(const pulsetrack_msgs_msg_dds__Health_* m) {
       {"recorder_state", m->recorder_state},
       {"tracking_state", m->tracking_state},
       {"clock_state", m->clock_state},
+      {"security_state", m->security_state},
   };
   for (size_t i = 0; i < sizeof strings / sizeof strings[0]; ++i) {
     printf(" %s=", strings[i].name);

@@ -118,7 +118,7 @@ log=$(nsenter -t "$pid1" -m -p journalctl -u pulsetrackd -o cat --no-pager 2>/de
 echo "--- journalctl -u pulsetrackd ---"; echo "$log" | tail -20
 # The loggers' fields in the journal: the message with its component, priority info (6).
 verbose=$(nsenter -t "$pid1" -m -p journalctl -u pulsetrackd -o verbose --no-pager \
-  MESSAGE="[pipeline] running, rig rig-systemd, DDS domain 91, topics rt/pulsetrack/features" \
+  MESSAGE="[pipeline] running, rig rig-systemd, DDS domain 91, topics rt/pulsetrack/features, DDS unsecured" \
   2>/dev/null || true)
 new_pid=$(show MainPID)
 user=$(nsenter -t "$pid1" -m -p ps -o user= -p "$new_pid" 2>/dev/null || true)

@@ -7,6 +7,7 @@
 
 #include <chrono>
 #include <memory>
+#include <optional>
 #include <string_view>
 #include <thread>
 
@@ -20,6 +21,7 @@ namespace {
 struct CtlArgs {
   uint32_t domain = 0;
   std::string ns;
+  std::string enclave;  // DDS Security: an SROS2 enclave folder; empty: unsecured
   std::string rig;
   std::string command;
   std::vector<int> roi_left, roi_right;
@@ -28,7 +30,9 @@ struct CtlArgs {
 };
 
 int runCtl(const CtlArgs& a) {
-  auto p = dds::Participant::create(a.domain);
+  std::optional<dds::SecurityFiles> security;
+  if (!a.enclave.empty()) security = dds::SecurityFiles::inEnclave(a.enclave);
+  auto p = dds::Participant::create(a.domain, security ? &*security : nullptr);
   if (!p) return fmt::print(stderr, "ctl: {}\n", p.error().message), 1;
   auto topics = dds::Topics::forNamespace(a.ns);
   if (!topics) return fmt::print(stderr, "ctl: {}\n", topics.error().message), 2;
@@ -106,6 +110,9 @@ CommandRunner addCtlCommand(CLI::App& app) {
       ->check(CLI::Range(0, 232))
       ->capture_default_str();
   cmd->add_option("--namespace", a->ns, "The daemon's topic namespace ([dds] namespace)");
+  cmd->add_option("--enclave", a->enclave,
+                  "DDS Security: this participant's SROS2 enclave folder (KEYSTORE/enclaves/NAME, "
+                  "scripts/security); needed when the daemon's domain is secured");
   cmd->add_option("--rig", a->rig,
                   "The daemon's rig_id (a check: default, whichever rig the namespace has)");
   cmd->add_option("--roi-left", a->roi_left, "set-roi: x,y,w,h (px)")->delimiter(',');

@@ -6,6 +6,7 @@
 #include <chrono>
 #include <csignal>
 #include <memory>
+#include <optional>
 #include <string_view>
 
 #include "pulsetrack/dds/dds.hpp"
@@ -21,6 +22,7 @@ void onSignal(int /*sig*/) { g_stop = 1; }
 struct ListenArgs {
   uint32_t domain = 0;
   std::string ns;
+  std::string enclave;  // DDS Security: an SROS2 enclave folder; empty: unsecured
   std::string rig;
   double seconds = 0.0;
   int count = 0;
@@ -33,7 +35,9 @@ const char* stateName(uint8_t s) {
 }
 
 int runListen(const ListenArgs& a) {
-  auto p = dds::Participant::create(a.domain);
+  std::optional<dds::SecurityFiles> security;
+  if (!a.enclave.empty()) security = dds::SecurityFiles::inEnclave(a.enclave);
+  auto p = dds::Participant::create(a.domain, security ? &*security : nullptr);
   if (!p) return fmt::print(stderr, "listen: {}\n", p.error().message), 1;
   auto topics = dds::Topics::forNamespace(a.ns);
   if (!topics) return fmt::print(stderr, "listen: {}\n", topics.error().message), 2;
@@ -78,6 +82,7 @@ int runListen(const ListenArgs& a) {
         fmt::print("        recorder {}\n", h.recorder_state);
       if (h.tracking_state != nullptr) fmt::print("        {}\n", h.tracking_state);
       if (h.clock_state != nullptr) fmt::print("        stamps {}\n", h.clock_state);
+      if (h.security_state != nullptr) fmt::print("        DDS {}\n", h.security_state);
       for (uint32_t i = 0; i < h.stages._length; ++i) {
         const auto& s = h.stages._buffer[i];
         fmt::print("        {:8} p50 {} us, p99 {} us, max {} us\n", s.stage, s.p50_us, s.p99_us,
@@ -127,6 +132,9 @@ CommandRunner addListenCommand(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--namespace", a->ns,
                   "The daemon's topic namespace ([dds] namespace; default none)");
+  cmd->add_option("--enclave", a->enclave,
+                  "DDS Security: this participant's SROS2 enclave folder (KEYSTORE/enclaves/NAME, "
+                  "scripts/security); needed when the daemon's domain is secured");
   cmd->add_option("--rig", a->rig, "Only this rig id (default: the namespace's)");
   cmd->add_option("--seconds", a->seconds, "Stop after this long")->check(CLI::NonNegativeNumber);
   cmd->add_option("--count", a->count, "Stop after this many deformation lines (exit 3 if none)")

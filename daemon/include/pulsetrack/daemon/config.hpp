@@ -2,6 +2,7 @@
 // pulsetrackd's configuration (config/pulsetrackd.toml documents every key).
 
 #include <filesystem>
+#include <optional>
 #include <string>
 
 #include "pulsetrack/dds/dds.hpp"
@@ -21,6 +22,8 @@ struct DaemonConfig {
   uint32_t domain_id = 0;
   std::string ros_namespace;  // [dds] namespace: one rig per topic namespace (ROS 2's)
   dds::Topics topics = *dds::Topics::forNamespace("");
+  // [security]: DDS Security's files; none: unsecured (lab use, health says so).
+  std::optional<dds::SecurityFiles> security;
   SourceKind source = SourceKind::kSim;
   std::filesystem::path scene;      // sim: resolved against the config file's folder
   std::filesystem::path recording;  // replay

@@ -12,6 +12,7 @@
 #include <string>
 #include <string_view>
 
+#include "pulsetrack/dds/security.hpp"
 #include "pulsetrack/vision/error.hpp"
 #include "pulsetrack_msgs.h"
 
@@ -62,13 +63,18 @@ class Entity {
 
 class Participant {
  public:
-  static Result<Participant> create(uint32_t domain_id);
+  // With `security`, a participant of a secured domain (its files checked first, errors naming
+  // them): it never falls back to an unsecured one.
+  static Result<Participant> create(uint32_t domain_id, const SecurityFiles* security = nullptr);
   [[nodiscard]] dds_entity_t get() const { return p_.get(); }
   [[nodiscard]] uint32_t domain() const { return domain_; }
+  // "unsecured", or "secured as CN=/pulsetrack/daemon" (the certificate's subject).
+  [[nodiscard]] const std::string& securityState() const { return security_state_; }
 
  private:
   Entity p_;
   uint32_t domain_ = 0;
+  std::string security_state_ = "unsecured";
 };
 
 class Writer {
