@@ -91,6 +91,20 @@ TEST(DaemonConfig, ACharacterOutsideAsciiOutsideAStringIsNamedNotUndefined) {
   // scan must not take the extra quote for the start of a new string (review finding).
   expectError("rig_id = \"\"\"x\"\"\"\" \xd2\x97\n", "pulsetrackd.toml:1: a character outside");
   expectError("rig_id = '''x'''' \xd2\x97\n", "pulsetrackd.toml:1: a character outside");
+  // A longer run's finding: a quote right after a number is no string to toml++ (it reads on
+  // as the number's garbage and reached the same unreachable point on the U+039A inside).
+  expectError("track = { priority =7777777777777777777777555555555555555555\"rig-\xce\x9a\"\n",
+              "pulsetrackd.toml:1: a character outside ASCII outside a string");
+  expectError("a = \"x\"\"\xce\x9a\"\n", "pulsetrackd.toml:1: a character outside");
+  // Where TOML has strings, non-ASCII still reads: values, arrays across lines, quoted keys,
+  // inline tables (refused by the config's reader as unknown keys, not by the pre-scan).
+  auto strings = parseDaemonConfig(
+      "rig_id = \"\xce\x9a\"\n\"\xce\x9a\".x = 1\n[tracker]\n\"\xce\x9a\" = [\n  \"\xce\x9a\",\n"
+      "  '\xce\x9a' ]\nt = { \"\xce\x9a\" = \"\xce\x9a\" }\n",
+      kShipped);
+  ASSERT_FALSE(strings);
+  EXPECT_EQ(strings.error().message.find("outside ASCII"), std::string::npos)
+      << strings.error().message;
   // A byte order mark is not a character of the file.
   auto bom = parseDaemonConfig("\xEF\xBB\xBFrig_id = \"a\"\n", kShipped);
   ASSERT_TRUE(bom) << bom.error().message;

@@ -14,6 +14,7 @@
 #include <iterator>
 #include <set>
 #include <string>
+#include <string_view>
 #include <system_error>
 #include <vector>
 
@@ -170,13 +171,20 @@ inline bool checkTomlText(const std::string& text, const std::string& file, std:
   const size_t n = text.size();
   // A UTF-8 byte order mark (Windows editors write one): toml++ skips it.
   const size_t start = text.starts_with("\xEF\xBB\xBF") ? 3 : 0;
+  // The last character outside strings and comments that is not a space or tab: a quote opens
+  // a string only where TOML has one (a value after '=', '[' or ',', a key at a line's start or
+  // after '.', '{' or ','). Elsewhere toml++ does not read it as a string either: it reads on
+  // as the token before (fuzz_daemon_config: a number directly followed by "...\u039a").
+  char prev = '\n';
   for (size_t i = start; i < n; ++i) {
     const char c = text[i];
+    const bool opens_string = std::string_view("\n=[,{.").find(prev) != std::string_view::npos;
+    if (c != ' ' && c != '\t' && c != '#') prev = c;
     if (c == '\n') {
       ++line;
     } else if (c == '#') {
       while (i + 1 < n && text[i + 1] != '\n') ++i;
-    } else if (c == '"' || c == '\'') {
+    } else if ((c == '"' || c == '\'') && opens_string) {
       const bool multi = i + 2 < n && text[i + 1] == c && text[i + 2] == c;
       i += multi ? 3 : 1;
       for (; i < n; ++i) {
