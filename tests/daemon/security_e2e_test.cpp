@@ -169,6 +169,60 @@ TEST_F(Keystores, OnlyAPermittedControllerCommandsTheDaemon) {
             0);
 }
 
+// The enclave as a consumer that shares no code with pulsetrack meets it: ros2_subscriber (built
+// from the .msg files) with Cyclone DDS's own XML security configuration, the plugins found by
+// dpkg, not by pulsetrack's dds layer.
+TEST_F(Keystores, AForeignSubscriberWithItsEnclaveReceivesTheSecuredTopics) {
+  const uint32_t domain = 94;
+  const test::TempDir dir;
+  DaemonOptions opt;
+  opt.rig = "rig-sec";
+  opt.extra = "[security]\nenclave = \"" + enclave("a", "pulsetrack/daemon").string() + "\"\n";
+  Daemon daemon(dir, domain, {}, "", {}, opt);
+  const test::CommandResult where = test::run("dpkg -L libddsc0debian");
+  const size_t at = where.output.find("/libdds_security_auth.so");
+  ASSERT_NE(at, std::string::npos) << where.output;
+  const std::string plugins =
+      where.output.substr(where.output.rfind('\n', at) + 1, at - where.output.rfind('\n', at) - 1);
+  const auto robot = enclave("a", "robot/arm");
+  const auto lib = [&](const char* name, const char* init, const char* fini) {
+    return "<Library path=\"" + plugins + "/libdds_security_" + name + ".so\" initFunction=\"" +
+           init + "\" finalizeFunction=\"" + fini + "\"/>";
+  };
+  const auto file = [&](const char* name) { return "file:" + (robot / name).string(); };
+  const std::string uri =
+      "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/>"
+      "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>"
+      "<ParticipantIndex>auto</ParticipantIndex><Peers><Peer Address=\"127.0.0.1\"/></Peers>"
+      "</Discovery><Security><Authentication>" +
+      lib("auth", "init_authentication", "finalize_authentication") + "<IdentityCA>" +
+      file("identity_ca.cert.pem") + "</IdentityCA><IdentityCertificate>" + file("cert.pem") +
+      "</IdentityCertificate><PrivateKey>" + file("key.pem") +
+      "</PrivateKey></Authentication><AccessControl>" +
+      lib("ac", "init_access_control", "finalize_access_control") + "<PermissionsCA>" +
+      file("permissions_ca.cert.pem") + "</PermissionsCA><Governance>" + file("governance.p7s") +
+      "</Governance><Permissions>" + file("permissions.p7s") +
+      "</Permissions></AccessControl><Cryptographic>" +
+      lib("crypto", "init_crypto", "finalize_crypto") +
+      "</Cryptographic></Security></Domain></CycloneDDS>";
+  const std::string uri_file = (dir.path() / "cyclonedds.xml").string();
+  std::ofstream(uri_file) << uri;
+  const test::CommandResult r =
+      test::run("CYCLONEDDS_URI=file://" + uri_file + " " + ROS2_SUBSCRIBER + " --domain " +
+                std::to_string(domain) + " --features 3 --deformation 3 --health 1 --timeout 90");
+  kill(daemon.pid, SIGTERM);
+  const auto t0 = std::chrono::steady_clock::now();
+  EXPECT_EQ(daemon.wait([&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  }),
+            0);
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("security_state=\"secured as CN=/pulsetrack/daemon\""), std::string::npos)
+      << r.output;
+  EXPECT_NE(r.output.find("summary features=3 deformation=3 health="), std::string::npos)
+      << r.output;
+}
+
 // The daemon's config naming `files` (an [security] table's body); its --check-config output.
 test::CommandResult checkConfig(const test::TempDir& dir, const std::string& security_body,
                                 bool check_only = true) {
