@@ -150,17 +150,28 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
           file);
     if (const toml::table* f = s.table("faults")) {
       TableReader ft(*f, file, "source.faults", &error);
-      c.sim_faults.missing_trigger_every = ft.integer("missing_trigger_every", 0, 0, 1000000);
-      c.sim_faults.left_drop_every = ft.integer("left_drop_every", 0, 0, 1000000);
-      c.sim_faults.right_miss_every = ft.integer("right_miss_every", 0, 0, 1000000);
+      drivers::SimFaults& sf = c.sim_faults;
+      sf.missing_trigger_every = ft.integer("missing_trigger_every", 0, 0, 1000000);
+      sf.left_drop_every = ft.integer("left_drop_every", 0, 0, 1000000);
+      sf.right_miss_every = ft.integer("right_miss_every", 0, 0, 1000000);
+      sf.outage_every_s = ft.number("outage_every_s", 0.0, 0.0, 86400.0);
+      sf.outage_s = ft.number("outage_s", 0.0, 0.0, 3600.0);
       ft.finish();
-      const bool any = c.sim_faults.missing_trigger_every + c.sim_faults.left_drop_every +
-                           c.sim_faults.right_miss_every >
-                       0;
-      if (any && c.source != SourceKind::kSim && error.empty())
+      if ((sf.outage_every_s > 0) != (sf.outage_s > 0) && error.empty())
         error = fmt::format(
-            "{}: source.faults: only the simulated rig (kind = \"sim\") can show "
-            "injected faults",
+            "{}: source.faults: outage_every_s and outage_s go together (both 0, or both set)",
+            file);
+      if (sf.outage_every_s > 0 && sf.outage_s >= sf.outage_every_s && error.empty())
+        error = fmt::format(
+            "{}: source.faults: outage_s ({:g}) must be shorter than outage_every_s ({:g})", file,
+            sf.outage_s, sf.outage_every_s);
+      const bool pairing = sf.left_drop_every + sf.right_miss_every > 0;
+      const bool any = pairing || sf.missing_trigger_every > 0 || sf.outage_every_s > 0;
+      const bool at_rate = c.source == SourceKind::kReplay && c.pace == Pace::kRate;
+      if (any && c.source != SourceKind::kSim && !(at_rate && !pairing) && error.empty())
+        error = fmt::format(
+            "{}: source.faults: only the simulated rig (kind = \"sim\") can show injected "
+            "faults, and a replay at a rate (pace = \"rate\") missing triggers and outages",
             file);
     }
     s.finish();
@@ -186,6 +197,8 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     const std::string dir = s.string("dir", "/var/lib/pulsetrack/recordings");
     c.record_dir = path.parent_path() / dir;
     c.record_slots = s.integer("slots", 32, 2, 4096);
+    c.record_min_free_mb = s.integer("min_free_mb", 1024, 0, 1000000);
+    c.record_resume = s.boolean("resume", true);
     s.finish();
   } else {
     c.record_dir = "/var/lib/pulsetrack/recordings";

@@ -123,7 +123,7 @@ int run(int argc, char** argv) {
     o.fps = config->fps;
     o.loop = config->loop;
     o.preload = config->preload;
-    auto r = drivers::makeReplaySource(config->recording, o);
+    auto r = drivers::makeReplaySource(config->recording, o, config->sim_faults);
     if (!r) {
       log_source.error("{}", r.error().message);
       return 1;
@@ -177,6 +177,8 @@ int run(int argc, char** argv) {
     record::LiveRecorderOptions o;
     o.dir = dir;
     o.slots = config->record_slots;
+    o.min_free_bytes = static_cast<uint64_t>(config->record_min_free_mb) * 1'000'000;
+    o.resume_check_ms = config->record_resume ? 2000 : 0;
     o.manifest.source = "pulsetrackd " + source->name();
     o.manifest.rig_id = config->rig_id;
     o.manifest.width = source->rig().left.imageSize().width;
@@ -236,8 +238,11 @@ int run(int argc, char** argv) {
     recorder->stop();
     const auto st = recorder->status();
     daemon::log::get("recorder")
-        .info("recorded {} frames ({} skipped: disk behind){}{}", st.written, st.thinned,
-              st.error.empty() ? "" : "; stopped: ", st.error);
+        .info(
+            "recorded {} frames in {} segments ({} skipped: disk behind; {} disk faults, {} "
+            "pairs not recorded){}{}",
+            st.written, st.segment, st.thinned, st.faults, st.unrecorded,
+            st.error.empty() ? "" : "; stopped: ", st.error);
   }
   if (trigger) trigger->stop();
   log_pipeline.info("stopped after {} tracked pairs", pipeline.tracked());

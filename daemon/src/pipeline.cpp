@@ -63,6 +63,7 @@ std::string recordingName(const std::string& rig_id) {
 Pipeline::Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSource> source,
                    const dds::Participant& participant, record::LiveRecorder* recorder)
     : config_(config), source_(std::move(source)), recorder_(recorder), participant_(participant) {
+  quiet_after_ns_ = std::max<int64_t>(1'000'000'000, static_cast<int64_t>(3e9 / config_.fps));
   const cv::Size size = source_->rig().left.imageSize();
   for (Frame& f : frames_.slots()) {
     f.pair.left.create(size, CV_8UC1);
@@ -134,13 +135,26 @@ void Pipeline::stop() {
 }
 
 void Pipeline::captureLoop() {
-  bool faulted = false;
+  bool faulted = false;  // the source said so (a fault, or its end)
+  bool out = false;      // an outage: a fault, or quiet for longer than quiet_after_ns_
+  int64_t out_since = 0;
+  uint64_t lost_at_outage = 0;
   while (running_.load(std::memory_order_relaxed)) {
     Frame& f = frames_.back();
     const drivers::Next n = source_->next(f.pair, std::chrono::milliseconds(100));
     const int64_t now = rt::monotonicNs();
     capture_beat_.beat(now);
     if (n == drivers::Next::kFrame) {
+      if (out) {  // the source is back: the outage is over (health says so, with its length)
+        // The outage's pulses, counted by the source as missing now that a pair came: the
+        // outage was said already, health's loss window leaves them out.
+        const drivers::SourceCounters c = source_->counters();
+        outage_lost_.fetch_add(c.missing_triggers + c.unpaired - lost_at_outage,
+                               std::memory_order_relaxed);
+        source_outage_ns_.store(now - out_since, std::memory_order_relaxed);
+        source_recoveries_.fetch_add(1, std::memory_order_release);
+        out = false;
+      }
       f.captured_ns = now;
       capture_lat_.record(static_cast<uint64_t>(std::max<int64_t>(0, now - f.pair.t_left_ns)));
       if (recorder_ != nullptr) {  // a copy into a free slot, or a counted skip: never a wait
@@ -159,14 +173,24 @@ void Pipeline::captureLoop() {
         for (uint64_t c = consumed_.load(); c < handed_ && running_.load(); c = consumed_.load())
           consumed_.wait(c);
       }
-    } else if (n == drivers::Next::kFault || n == drivers::Next::kEnd) {
-      if (!faulted) {  // said once per fault, on its edge (the health thread reports it)
+    } else {
+      const bool fault = n == drivers::Next::kFault || n == drivers::Next::kEnd;
+      if (fault && !faulted) {  // said once per fault, on its edge (the health thread reports it)
         source_errors_.back() =
             n == drivers::Next::kEnd ? "the source ended" : source_->lastFault();
         source_errors_.publish();
         faulted = true;
       }
-      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      const int64_t last = last_frame_ns_.load(std::memory_order_relaxed);
+      const bool quiet = last != 0 && now - last > quiet_after_ns_;
+      if (!out && (fault || quiet) && last != 0) {  // an outage starts (counted once)
+        out = true;
+        out_since = fault ? now : last;
+        const drivers::SourceCounters c = source_->counters();
+        lost_at_outage = c.missing_triggers + c.unpaired;
+        source_faults_.fetch_add(1, std::memory_order_release);
+      }
+      if (fault) std::this_thread::sleep_for(std::chrono::milliseconds(50));
     }
     frames_seq_.fetch_add(1, std::memory_order_release);
     frames_seq_.notify_one();
@@ -335,6 +359,7 @@ std::string Pipeline::command(const pulsetrack_msgs_msg_dds__Command_& c) {
       command_errors_.publish();
       break;
   }
+  if (cc.kind != CommandKind::kRefused) commands_accepted_.fetch_add(1);
   return cc.refusal;
 }
 
@@ -366,16 +391,32 @@ State Pipeline::health(const Notifier& notifier) {
   // stages still run and the watchdog is still fed; the device may come back).
   if (const std::string* e = source_errors_.take()) last_source_error_ = *e;
   const int64_t last_frame = last_frame_ns_.load(std::memory_order_relaxed);
-  const int64_t quiet_after =
-      std::max<int64_t>(1'000'000'000, static_cast<int64_t>(3e9 / config_.fps));
-  const bool quiet = last_frame != 0 && now - last_frame > quiet_after;
+  const bool quiet = last_frame != 0 && now - last_frame > quiet_after_ns_;
+  // Outages (faults, or the source quiet): each said once in the journal, and its end.
+  const uint64_t outages = source_faults_.load(std::memory_order_acquire);
+  const uint64_t recoveries = source_recoveries_.load(std::memory_order_acquire);
+  if (outages != outages_said_) {
+    outages_said_ = outages;
+    log::get("source").warn(
+        "outage {}: {}", outages,
+        last_source_error_.empty() ? "no frame from the source" : last_source_error_);
+  }
+  if (recoveries != recoveries_said_) {
+    recoveries_said_ = recoveries;
+    log::get("source").info(
+        "frames again after an outage of {:.1f} s ({} outages so far)",
+        static_cast<double>(source_outage_ns_.load(std::memory_order_relaxed)) * 1e-9, outages);
+  }
   // Triggers that gave no pair (missing pulses, frames without a partner) over a window of
   // 20 trigger periods (at least 1 s): more than a fifth of them is degraded, said on health.
+  const uint64_t outage_lost = outage_lost_.load();  // before the counters: never more than them
   const drivers::SourceCounters sc = source_->counters();
-  const uint64_t lost = sc.missing_triggers + sc.unpaired;
+  const uint64_t lost = sc.missing_triggers + sc.unpaired - outage_lost;
   const auto window_ns = std::max<int64_t>(1'000'000'000, static_cast<int64_t>(20e9 / config_.fps));
   if (now - loss_window_.t_ns >= window_ns) {
-    loss_window_.lost_in = lost - loss_window_.lost;
+    // (An outage's pulses are counted by the source and then by outage_lost_ a moment apart:
+    // the difference may step back once.)
+    loss_window_.lost_in = lost > loss_window_.lost ? lost - loss_window_.lost : 0;
     loss_window_.pairs_in = sc.frames - loss_window_.frames;
     loss_window_ = {now, lost, sc.frames, loss_window_.lost_in, loss_window_.pairs_in};
   }
@@ -436,6 +477,9 @@ State Pipeline::health(const Notifier& notifier) {
   h.deadline_misses = deadline_misses_.load();
   h.missing_triggers = sc.missing_triggers;
   h.unpaired = sc.unpaired;
+  h.source_faults = outages;
+  h.commands_accepted = commands_accepted_.load();
+  h.commands_refused = commands_refused_.load();
   std::string source_name = source_->name();
   h.source = source_name.data();
   std::string source_state = quiet ? "stalled" : paused_.load() ? "paused" : "running";
@@ -445,10 +489,24 @@ State Pipeline::health(const Notifier& notifier) {
   std::string recorder_state = "off";
   if (recorder_ != nullptr) {
     const record::RecorderStatus rs = recorder_->status();
-    recorder_state = rs.error.empty()
-                         ? fmt::format("recording {}: {} frames, {} skipped (disk behind)",
-                                       recorder_->dir().string(), rs.written, rs.thinned)
-                         : fmt::format("stopped after {} frames: {}", rs.written, rs.error);
+    h.recorder_faults = rs.faults;
+    const std::string faults =
+        rs.faults == 0
+            ? ""
+            : fmt::format("; {} disk faults, {} pairs not recorded", rs.faults, rs.unrecorded);
+    recorder_state =
+        rs.error.empty()
+            ? fmt::format("recording {}: {} frames, {} skipped (disk behind){}", rs.dir.string(),
+                          rs.written, rs.thinned, faults)
+            : fmt::format("stopped after {} frames: {}{}", rs.written, rs.error, faults);
+    if (rs.faults != recorder_faults_said_) {
+      recorder_faults_said_ = rs.faults;
+      log::get("recorder").warn("{}", recorder_state);
+    }
+    if (rs.segment != recorder_segment_said_) {
+      recorder_segment_said_ = rs.segment;
+      log::get("recorder").info("recording again, to {}", rs.dir.string());
+    }
   }
   h.recorder_state = recorder_state.data();
   std::string tracking_state =
@@ -460,6 +518,10 @@ State Pipeline::health(const Notifier& notifier) {
   std::string clock_state = fmt::format("CLOCK_REALTIME {}; {} steps", sync.text, clock_.steps());
   h.clock_state = clock_state.data();
   h.security_state = const_cast<char*>(participant_.securityState().c_str());
+  std::string output_state = fmt::format(
+      "readers matched: features {}, deformation {}, health {}", features_writer_.matchedReaders(),
+      deformation_writer_.matchedReaders(), health_writer_.matchedReaders());
+  h.output_state = output_state.data();
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
   std::string err =
       quiet    ? fmt::format("no frame from the source for {} ms{}", (now - last_frame) / 1'000'000,

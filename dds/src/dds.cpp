@@ -25,8 +25,15 @@ dds_qos_t* makeQos(Profile profile) {
       dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
       break;
     case Profile::kCommand:
+      // Every command arrives, in order, or its write fails: keep-all with a bounded history, so
+      // a burst is flow-controlled (the writer blocks up to 100 ms, then its write times out)
+      // instead of older commands being replaced unseen (a keep-last 10 history lost 729 of a
+      // 1000-command flood in the soak), and a flooding participant cannot grow the daemon's
+      // memory. History kind is not part of QoS matching: a ROS 2 publisher with rclcpp's
+      // default (keep-last 10, reliable) still matches.
       dds_qset_reliability(qos, DDS_RELIABILITY_RELIABLE, DDS_MSECS(100));
-      dds_qset_history(qos, DDS_HISTORY_KEEP_LAST, 10);
+      dds_qset_history(qos, DDS_HISTORY_KEEP_ALL, DDS_LENGTH_UNLIMITED);
+      dds_qset_resource_limits(qos, 64, DDS_LENGTH_UNLIMITED, DDS_LENGTH_UNLIMITED);
       dds_qset_durability(qos, DDS_DURABILITY_VOLATILE);
       break;
   }

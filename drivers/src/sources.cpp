@@ -2,6 +2,7 @@
 #include <time.h>
 
 #include <array>
+#include <cmath>
 
 #include "paired_frames.hpp"
 #include "pulsetrack/drivers/source.hpp"
@@ -17,6 +18,17 @@ void sleepUntil(int64_t t_ns) {
   ts.tv_nsec = static_cast<long>(t_ns % 1'000'000'000);
   while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr) == EINTR) {
   }
+}
+
+// Within an injected outage, `since_start_ns` after the source started.
+bool inOutage(const SimFaults& f, int64_t since_start_ns) {
+  if (f.outage_every_s <= 0 || f.outage_s <= 0) return false;
+  const double t = static_cast<double>(since_start_ns) * 1e-9;
+  return t >= f.outage_every_s && std::fmod(t, f.outage_every_s) < f.outage_s;
+}
+
+bool every(int n, uint64_t k) {
+  return n > 0 && k % static_cast<uint64_t>(n) == static_cast<uint64_t>(n - 1);
 }
 
 class SimSource final : public CameraSource {
@@ -41,10 +53,23 @@ class SimSource final : public CameraSource {
     const int64_t until = rt::monotonicNs() + std::chrono::nanoseconds(timeout).count();
     const auto count = static_cast<uint64_t>(sim_.frameCount());
     for (;;) {
-      const int64_t due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
+      int64_t due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
       const int64_t now = rt::monotonicNs();
+      outage_ = inOutage(faults_, now - t0_ns_);
+      if (outage_) {  // the cameras are gone: their pulses pass with no frame
+        while (due <= now) due = t0_ns_ + static_cast<int64_t>(++index_) * period_ns_;
+        return Next::kFault;
+      }
       if (due > until) return Next::kTimeout;
       if (!loop_ && index_ >= count) return Next::kEnd;
+      if (inOutage(faults_, due - t0_ns_)) {
+        if (due <= now) {  // a pulse of an outage that ended meanwhile
+          ++index_;
+        } else {
+          sleepUntil(due);  // the outage starts with this pulse
+        }
+        continue;
+      }
       // Rendering took longer than a period: the cameras exposed on every pulse, but a newer
       // pair is already due, so this one is not taken (newest wins, counted as an overrun).
       const bool late = due + period_ns_ <= now;
@@ -70,14 +95,11 @@ class SimSource final : public CameraSource {
     }
   }
   void stop() override {}
-  std::string lastFault() const override { return {}; }
+  std::string lastFault() const override { return outage_ ? kInjectedOutage : ""; }
   SourceCounters counters() const override { return pairs_.counters(); }
   std::string triggerState() const override { return fmt::format("software {:g} Hz", fps_); }
 
  private:
-  static bool every(int n, uint64_t k) {
-    return n > 0 && k % static_cast<uint64_t>(n) == static_cast<uint64_t>(n - 1);
-  }
   sim::StereoSimulator sim_;
   int64_t period_ns_;
   double fps_;
@@ -86,12 +108,14 @@ class SimSource final : public CameraSource {
   PairedFrames pairs_;
   int64_t t0_ns_ = 0;
   uint64_t index_ = 0;
+  bool outage_ = false;
   std::array<uint64_t, 2> seq_{};
 };
 
 class ReplaySource final : public CameraSource {
  public:
-  ReplaySource(record::Reader reader, const ReplayOptions& o) : reader_(std::move(reader)), o_(o) {}
+  ReplaySource(record::Reader reader, const ReplayOptions& o, const SimFaults& faults)
+      : reader_(std::move(reader)), o_(o), faults_(faults) {}
   vision::Result<void> preload() {
     frames_.resize(reader_.size());
     for (size_t i = 0; i < reader_.size(); ++i) {
@@ -108,6 +132,28 @@ class ReplaySource final : public CameraSource {
     return {};
   }
   Next next(StereoFrame& frame, std::chrono::milliseconds timeout) override {
+    using P = ReplayOptions::Pace;
+    if (o_.pace == P::kRate && t0_rate_ns_ != 0) {
+      // Injected faults, as a live camera on a trigger shows them (pulses pass meanwhile).
+      const int64_t until = rt::monotonicNs() + std::chrono::nanoseconds(timeout).count();
+      for (;;) {
+        const int64_t now = rt::monotonicNs();
+        outage_ = inOutage(faults_, now - t0_rate_ns_);
+        if (outage_) return Next::kFault;
+        if (every(faults_.missing_trigger_every, handed_)) {
+          skipPulses(1);
+          continue;
+        }
+        const int64_t due = rateDue(handed_);
+        if (!inOutage(faults_, due - t0_rate_ns_)) break;
+        if (due <= now) {  // a pulse of an outage that ended meanwhile
+          skipPulses(1);
+          continue;
+        }
+        if (due > until) return Next::kTimeout;
+        sleepUntil(due);  // the outage starts with this pulse
+      }
+    }
     if (index_ >= reader_.size()) {
       if (!o_.loop) return Next::kEnd;
       loops_ += reader_.meta(reader_.size() - 1).trigger_seq + 1;  // the sequence goes on
@@ -116,12 +162,9 @@ class ReplaySource final : public CameraSource {
     }
     const record::FrameMeta& m = reader_.meta(index_);
     int64_t due = 0;
-    using P = ReplayOptions::Pace;
     if (o_.pace == P::kRecorded) due = t0_ns_ + (m.t_left_ns - base_ns_);
     if (o_.pace == P::kRate) {
-      due = t0_rate_ns_ == 0
-                ? (t0_rate_ns_ = rt::monotonicNs())
-                : t0_rate_ns_ + static_cast<int64_t>(static_cast<double>(handed_) * 1e9 / o_.fps);
+      due = t0_rate_ns_ == 0 ? (t0_rate_ns_ = rt::monotonicNs()) : rateDue(handed_);
     }
     if (due > rt::monotonicNs() + std::chrono::nanoseconds(timeout).count()) return Next::kTimeout;
     if (due > 0) sleepUntil(due);
@@ -132,7 +175,7 @@ class ReplaySource final : public CameraSource {
       fault_ = ok.error().message;
       return Next::kFault;
     }
-    if (counters_.frames > 0 && index_ > 0 && m.trigger_seq > last_seq_ + 1)
+    if (o_.pace != P::kRate && counters_.frames > 0 && index_ > 0 && m.trigger_seq > last_seq_ + 1)
       counters_.missing_triggers += m.trigger_seq - last_seq_ - 1;
     last_seq_ = m.trigger_seq;
     if (o_.pace == P::kRate) {
@@ -152,7 +195,7 @@ class ReplaySource final : public CameraSource {
     return Next::kFrame;
   }
   void stop() override {}
-  std::string lastFault() const override { return fault_; }
+  std::string lastFault() const override { return outage_ ? kInjectedOutage : fault_; }
   SourceCounters counters() const override { return shared_.load(); }
   std::string triggerState() const override {
     return o_.pace == ReplayOptions::Pace::kRate ? fmt::format("replay at {:g} Hz", o_.fps)
@@ -160,8 +203,21 @@ class ReplaySource final : public CameraSource {
   }
 
  private:
+  [[nodiscard]] int64_t rateDue(uint64_t pulse) const {
+    return t0_rate_ns_ + static_cast<int64_t>(static_cast<double>(pulse) * 1e9 / o_.fps);
+  }
+  // Pulses that gave no frame (at a rate): counted, and the recording moves on as time does.
+  void skipPulses(uint64_t n) {
+    handed_ += n;
+    counters_.missing_triggers += n;
+    index_ = o_.loop ? (index_ + n) % reader_.size() : std::min(index_ + n, reader_.size());
+    shared_.store(counters_);
+  }
+
   record::Reader reader_;
   ReplayOptions o_;
+  SimFaults faults_;
+  bool outage_ = false;
   std::vector<std::pair<cv::Mat, cv::Mat>> frames_;
   size_t index_ = 0;
   uint64_t loops_ = 0, handed_ = 0;
@@ -181,14 +237,19 @@ std::unique_ptr<CameraSource> makeSimSource(const sim::SceneSpec& scene,
 }
 
 vision::Result<std::unique_ptr<CameraSource>> makeReplaySource(
-    const std::filesystem::path& recording, const ReplayOptions& options) {
+    const std::filesystem::path& recording, const ReplayOptions& options, const SimFaults& faults) {
   auto r = record::Reader::open(recording);
   if (!r) return std::unexpected(r.error());
   if (r->size() == 0)
     return vision::fail(
         fmt::format("{}: the recording holds no complete frame", recording.string()));
   if (!(options.fps > 0.0)) return vision::fail("replay: the rate must be positive");
-  auto src = std::make_unique<ReplaySource>(std::move(*r), options);
+  if (faults.left_drop_every + faults.right_miss_every > 0 ||
+      ((faults.missing_trigger_every > 0 || faults.outage_every_s > 0) &&
+       options.pace != ReplayOptions::Pace::kRate))
+    return vision::fail(
+        "replay: only missing triggers and outages can be injected, and only at a rate");
+  auto src = std::make_unique<ReplaySource>(std::move(*r), options, faults);
   if (options.preload) {
     if (auto ok = src->preload(); !ok) return std::unexpected(ok.error());
   }

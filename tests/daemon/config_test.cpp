@@ -39,6 +39,10 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_EQ(d->topics.features, "rt/pulsetrack/features");
   EXPECT_EQ(d->retry_interval_s, c->retry_interval_s);
   EXPECT_EQ(d->velocity_window_s, c->velocity_window_s);
+  EXPECT_EQ(c->sim_faults.outage_every_s, 0.0);
+  EXPECT_EQ(d->record_min_free_mb, c->record_min_free_mb);
+  EXPECT_EQ(c->record_min_free_mb, 1024);
+  EXPECT_TRUE(c->record_resume);
   auto ns = parseDaemonConfig("[dds]\nnamespace = \"/site/or1\"\n", kShipped);
   ASSERT_TRUE(ns) << ns.error().message;
   EXPECT_EQ(ns->topics.command, "rt/site/or1/pulsetrack/command");
@@ -150,6 +154,27 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError(
       "[source]\nkind = \"replay\"\nrecording = \"r\"\n[source.faults]\nleft_drop_every = 3\n",
       "only the simulated rig");
+  expectError("[source.faults]\noutage_every_s = 60.0\n",
+              "outage_every_s and outage_s go together");
+  expectError("[source.faults]\noutage_every_s = 5.0\noutage_s = 5.0\n",
+              "outage_s (5) must be shorter than outage_every_s (5)");
+  expectError(
+      "[source]\nkind = \"replay\"\nrecording = \"r\"\n[source.faults]\noutage_every_s = "
+      "60.0\noutage_s = 4.0\n",
+      "and a replay at a rate (pace = \"rate\") missing triggers and outages");
+  expectError("[recorder]\nmin_free_mb = -5\n", "recorder.min_free_mb");
+  // A replay at a rate shows missing triggers and outages, as a live camera would.
+  auto rate = parseDaemonConfig(
+      "[source]\nkind = \"replay\"\nrecording = \"r\"\npace = \"rate\"\n[source.faults]\n"
+      "missing_trigger_every = 997\noutage_every_s = 300.0\noutage_s = 4.0\n[recorder]\n"
+      "min_free_mb = 256\nresume = false\n",
+      "/etc/pulsetrack/pulsetrackd.toml");
+  ASSERT_TRUE(rate) << rate.error().message;
+  EXPECT_EQ(rate->sim_faults.missing_trigger_every, 997);
+  EXPECT_EQ(rate->sim_faults.outage_every_s, 300.0);
+  EXPECT_EQ(rate->sim_faults.outage_s, 4.0);
+  EXPECT_EQ(rate->record_min_free_mb, 256);
+  EXPECT_FALSE(rate->record_resume);
   auto missing = loadDaemonConfig("/nonexistent/pulsetrackd.toml");
   ASSERT_FALSE(missing);
   EXPECT_NE(missing.error().message.find("/nonexistent/pulsetrackd.toml: cannot open"),

@@ -5,6 +5,7 @@
 
 #include <gtest/gtest.h>
 
+#include <set>
 #include <thread>
 
 #include "pulsetrack/rt/heartbeat.hpp"
@@ -21,6 +22,17 @@ sim::SceneSpec cortex(int frames) {
   spec.supersample = 1;
   spec.frames = frames;
   return spec;
+}
+
+// A recording's manifest for the paper rig's images.
+record::Manifest paperManifest() {
+  record::Manifest m;
+  m.source = "test";
+  m.rig_id = "rig-t";
+  m.width = sim::paperRig().left.imageSize().width;
+  m.height = sim::paperRig().left.imageSize().height;
+  m.nominal_fps = 10;
+  return m;
 }
 
 TEST(SimSource, SoftwareTriggerAtTheRateWithTheSimulatorsFrames) {
@@ -88,16 +100,99 @@ TEST(SimSource, InjectedTriggerAndCameraFaultsAreCountedAndNeverPairedWrongly) {
   EXPECT_EQ(c.dropped, 4U);           // the left counter's gaps
 }
 
+// An injected outage: the source says kFault (as a driver whose camera vanished) for its length,
+// the trigger's pulses meanwhile are missing triggers, and the cameras come back by themselves.
+TEST(SimSource, AnInjectedOutageIsAFaultAndTheCamerasComeBack) {
+  const sim::SceneSpec spec = cortex(10);
+  SimFaults faults;
+  faults.outage_every_s = 1.0;
+  faults.outage_s = 0.45;  // pulses 10 ... 14 (1.0 ... 1.4 s) fall in it
+  auto src = makeSimSource(spec, sim::paperRig(), 10.0, /*loop=*/true, faults);
+  ASSERT_TRUE(src->start());
+  const int64_t t0 = rt::monotonicNs();
+  StereoFrame f;
+  int faults_seen = 0;
+  std::vector<uint64_t> after;  // pairs after the first fault
+  while (after.size() < 3 && rt::monotonicNs() - t0 < 60'000'000'000) {
+    const Next n = src->next(f, std::chrono::milliseconds(1000));
+    if (n == Next::kFault) {
+      ++faults_seen;
+      EXPECT_EQ(src->lastFault(), kInjectedOutage);
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+      continue;
+    }
+    ASSERT_EQ(n, Next::kFrame);
+    EXPECT_FALSE(f.trigger_seq >= 10 && f.trigger_seq <= 14) << "pulse " << f.trigger_seq;
+    EXPECT_EQ(src->lastFault(), "");
+    if (faults_seen > 0) after.push_back(f.trigger_seq);
+  }
+  EXPECT_GT(faults_seen, 0);
+  ASSERT_EQ(after.size(), 3U) << "the cameras did not come back";
+  EXPECT_GE(after[0], 15U);
+  // The outage's five pulses gave no frame from either camera: missing triggers, none unpaired.
+  EXPECT_EQ(src->counters().missing_triggers, 5U);
+  EXPECT_EQ(src->counters().unpaired, 0U);
+}
+
+TEST(ReplaySource, AtARateMissingTriggersAndOutagesAsALiveCameraShowsThem) {
+  test::TempDir dir;
+  const auto path = dir.path() / "rec";
+  const vision::StereoRig rig = sim::paperRig();
+  const record::Manifest m = paperManifest();
+  auto w = record::Writer::create(path, m, rig, 0);
+  ASSERT_TRUE(w) << w.error().message;
+  for (uint64_t i = 0; i < 5; ++i) {
+    const cv::Mat l(rig.left.imageSize(), CV_8UC1, cv::Scalar(static_cast<double>(i)));
+    ASSERT_TRUE(w->write(
+        {i, i, static_cast<int64_t>(i) * 100'000'000, static_cast<int64_t>(i) * 100'000'000, 0}, l,
+        l));
+  }
+  ASSERT_TRUE(w->close());
+  ReplayOptions rate;
+  rate.pace = ReplayOptions::Pace::kRate;
+  rate.fps = 50.0;
+  rate.loop = true;
+  rate.preload = true;
+  SimFaults faults;
+  faults.missing_trigger_every = 7;  // pulses 6, 13, 20, ...
+  faults.outage_every_s = 0.2;
+  faults.outage_s = 0.09;  // pulses 10 ... 14 (0.20 ... 0.28 s)
+  auto src = makeReplaySource(path, rate, faults);
+  ASSERT_TRUE(src) << src.error().message;
+  ASSERT_TRUE((*src)->start());
+  StereoFrame f;
+  std::set<uint64_t> got;
+  int faults_seen = 0;
+  const int64_t t0 = rt::monotonicNs();
+  while ((got.empty() || *got.rbegin() < 19) && rt::monotonicNs() - t0 < 30'000'000'000) {
+    const Next n = (*src)->next(f, std::chrono::milliseconds(1000));
+    if (n == Next::kFault) {
+      ++faults_seen;
+      EXPECT_EQ((*src)->lastFault(), kInjectedOutage);
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+      continue;
+    }
+    ASSERT_EQ(n, Next::kFrame);
+    got.insert(f.trigger_seq);
+    // The scene moves on with time: pulse k shows the recording's frame k mod 5.
+    EXPECT_EQ(f.left.at<uint8_t>(0, 0), f.trigger_seq % 5) << "pulse " << f.trigger_seq;
+  }
+  const std::set<uint64_t> expected = {0, 1, 2, 3, 4, 5, 7, 8, 9, 15, 16, 17, 18, 19};
+  EXPECT_EQ(got, expected);
+  EXPECT_EQ((*src)->counters().missing_triggers, 6U);  // 6, 10 ... 14 (13 both)
+  // Faults that need two cameras' frames, or a pace that is not a live camera's, are refused.
+  SimFaults drops;
+  drops.left_drop_every = 3;
+  EXPECT_FALSE(makeReplaySource(path, rate, drops));
+  EXPECT_FALSE(makeReplaySource(path, {}, faults));
+  EXPECT_GT(faults_seen, 0);  // a consumer calling on time meets the outage as a fault
+}
+
 TEST(ReplaySource, FramesAsRecordedGapsCountedEndAndLoop) {
   test::TempDir dir;
   const auto path = dir.path() / "rec";
   const vision::StereoRig rig = sim::paperRig();
-  record::Manifest m;
-  m.source = "test";
-  m.rig_id = "rig-t";
-  m.width = rig.left.imageSize().width;
-  m.height = rig.left.imageSize().height;
-  m.nominal_fps = 10;
+  const record::Manifest m = paperManifest();
   auto w = record::Writer::create(path, m, rig);
   ASSERT_TRUE(w) << w.error().message;
   std::vector<cv::Mat> lefts;

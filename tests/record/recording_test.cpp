@@ -11,6 +11,7 @@
 #include <unistd.h>
 #include <zlib.h>
 
+#include <atomic>
 #include <cstring>
 #include <fstream>
 #include <limits>
@@ -486,6 +487,26 @@ TEST(LiveRecorder, ASlowDiskThinsTheRecordingAndCaptureNeverWaits) {
   for (size_t i = 1; i < r->size(); ++i) EXPECT_GT(r->meta(i).frame, r->meta(i - 1).frame);
 }
 
+// In a forked child (the caller's branch for pid 0): a recorder of 64x48 raw frames in `dir`
+// under a 60 kB file-size limit (the kernel's, as a full disk fails a write: EFBIG); exits 10 or
+// 11 when that cannot be set up.
+std::unique_ptr<LiveRecorder> recorderUnderFileSizeLimit(const std::filesystem::path& dir,
+                                                         int resume_check_ms) {
+  ::signal(SIGXFSZ, SIG_IGN);
+  const cv::Size size(64, 48);
+  LiveRecorderOptions o;
+  o.dir = dir;
+  o.manifest = manifest(size);
+  o.zstd_level = 0;
+  o.resume_check_ms = resume_check_ms;
+  auto rec = LiveRecorder::start(o, smallRig(size));
+  if (!rec) ::_exit(10);
+  rlimit lim{};
+  lim.rlim_cur = lim.rlim_max = 60'000;
+  if (::setrlimit(RLIMIT_FSIZE, &lim) != 0) ::_exit(11);
+  return std::move(*rec);
+}
+
 // A disk that fills (the kernel's file-size limit in a child process): the recording stops
 // cleanly with the error, offers are refused, the file reads back to its last frame.
 TEST(LiveRecorder, AFullDiskStopsTheRecordingCleanly) {
@@ -495,24 +516,14 @@ TEST(LiveRecorder, AFullDiskStopsTheRecordingCleanly) {
   const pid_t pid = ::fork();
   ASSERT_GE(pid, 0);
   if (pid == 0) {
-    ::signal(SIGXFSZ, SIG_IGN);
-    LiveRecorderOptions o;
-    o.dir = dir;
-    o.manifest = manifest(size);
-    o.zstd_level = 0;
-    auto rec = LiveRecorder::start(o, smallRig(size));
-    if (!rec) ::_exit(10);
-    rlimit lim{};
-    lim.rlim_cur = lim.rlim_max = 60'000;
-    if (::setrlimit(RLIMIT_FSIZE, &lim) != 0) ::_exit(11);
+    auto rec = recorderUnderFileSizeLimit(dir, 2000);  // no resume within the test
     for (uint64_t i = 0; i < 100; ++i) {
-      (void)(*rec)->offer({i, i, 0, 0, 0}, noiseImage(size, 1), noiseImage(size, 2));
+      (void)rec->offer({i, i, 0, 0, 0}, noiseImage(size, 1), noiseImage(size, 2));
       std::this_thread::sleep_for(std::chrono::milliseconds(3));
     }
-    const RecorderStatus st = (*rec)->status();
-    const bool refused =
-        !(*rec)->offer({100, 100, 0, 0, 0}, noiseImage(size, 1), noiseImage(size, 2));
-    (*rec)->stop();
+    const RecorderStatus st = rec->status();
+    const bool refused = !rec->offer({100, 100, 0, 0, 0}, noiseImage(size, 1), noiseImage(size, 2));
+    rec->stop();
     if (!st.stopped || st.error.find("not recorded") == std::string::npos || !refused) ::_exit(12);
     ::_exit(static_cast<int>(std::min<uint64_t>(st.written, 90)) + 1);
   }
@@ -527,6 +538,105 @@ TEST(LiveRecorder, AFullDiskStopsTheRecordingCleanly) {
   EXPECT_EQ(r->size(), static_cast<size_t>(code - 1));
   cv::Mat l, rr;
   for (size_t i = 0; i < r->size(); ++i) EXPECT_TRUE(r->read(i, l, rr));
+}
+
+// The disk below the reserve (the free-space seam: a test cannot fill a real disk): the segment
+// stops cleanly, offers while stopped are counted, and once the reserve and a margin are free
+// the recorder resumes by itself in DIR-part2, a complete recording whose frames start at 0.
+TEST(LiveRecorder, BelowTheReserveItStopsAndResumesInANewSegmentWhenThereIsRoom) {
+  test::TempDir tmp;
+  const cv::Size size(64, 48);
+  std::atomic<uint64_t> free_bytes{uint64_t{10} << 30};
+  LiveRecorderOptions o;
+  o.dir = tmp.path() / "live";
+  o.manifest = manifest(size);
+  o.min_free_bytes = uint64_t{1} << 30;
+  o.resume_check_ms = 20;
+  o.free_bytes = [&](const std::filesystem::path&) { return free_bytes.load(); };
+  auto rec = LiveRecorder::start(o, smallRig(size));
+  ASSERT_TRUE(rec) << rec.error().message;
+  const auto offer = [&](uint64_t i) {
+    return (*rec)->offer({i, 500 + i, static_cast<int64_t>(i), static_cast<int64_t>(i), 0},
+                         noiseImage(size, static_cast<int>(i)), noiseImage(size, 1000));
+  };
+  const auto waitFor = [&](auto pred) {
+    for (int k = 0; k < 1000 && !pred((*rec)->status()); ++k)
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    return pred((*rec)->status());
+  };
+  for (uint64_t i = 0; i < 10; ++i) ASSERT_TRUE(offer(i));
+  ASSERT_TRUE(waitFor([](const RecorderStatus& s) { return s.written == 10; }));
+  free_bytes = uint64_t{900} << 20;  // below the reserve
+  ASSERT_TRUE(offer(10));            // taken; the writer finds the disk too full for it
+  ASSERT_TRUE(waitFor([](const RecorderStatus& s) { return s.stopped; }));
+  RecorderStatus st = (*rec)->status();
+  EXPECT_EQ(st.faults, 1U);
+  EXPECT_EQ(st.written, 10U);
+  EXPECT_NE(st.error.find("the disk is almost full: 943 MB free, below the 1073 MB reserve"),
+            std::string::npos)
+      << st.error;
+  EXPECT_NE(st.error.find((tmp.path() / "live").string()), std::string::npos) << st.error;
+  for (uint64_t i = 11; i < 16; ++i) EXPECT_FALSE(offer(i));
+  EXPECT_EQ((*rec)->status().unrecorded, 5U);
+  // Room again, but not the reserve and its margin: still stopped.
+  free_bytes = (uint64_t{1} << 30) + (uint64_t{100} << 20);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_TRUE((*rec)->status().stopped);
+  free_bytes = uint64_t{2} << 30;
+  ASSERT_TRUE(waitFor([](const RecorderStatus& s) { return !s.stopped; }));
+  for (uint64_t i = 20; i < 27; ++i) ASSERT_TRUE(offer(i));
+  (*rec)->stop();
+  st = (*rec)->status();
+  EXPECT_EQ(st.segment, 2);
+  EXPECT_EQ(st.dir, tmp.path() / "live-part2");
+  EXPECT_EQ(st.written, 17U);
+  EXPECT_TRUE(st.error.empty()) << st.error;
+  auto first = Reader::open(tmp.path() / "live");
+  ASSERT_TRUE(first) << first.error().message;
+  EXPECT_EQ(first->size(), 10U);
+  EXPECT_FALSE(first->truncation().has_value());
+  auto second = Reader::open(tmp.path() / "live-part2");
+  ASSERT_TRUE(second) << second.error().message;
+  ASSERT_EQ(second->size(), 7U);
+  cv::Mat l, r;
+  for (size_t i = 0; i < 7; ++i) {
+    EXPECT_EQ(second->meta(i).frame, i);  // the segment's own numbering
+    EXPECT_EQ(second->meta(i).trigger_seq, 520 + i);
+    ASSERT_TRUE(second->read(i, l, r));
+    EXPECT_EQ(cv::norm(l, noiseImage(size, static_cast<int>(20 + i)), cv::NORM_INF), 0.0);
+  }
+}
+
+// A write that fails (the kernel's file-size limit) also resumes, in a new segment, when the
+// file system has room: the new file starts empty.
+TEST(LiveRecorder, AFailedWriteResumesInANewSegment) {
+  test::TempDir tmp;
+  const cv::Size size(64, 48);
+  const auto dir = tmp.path() / "live";
+  const pid_t pid = ::fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    auto rec = recorderUnderFileSizeLimit(dir, 20);
+    int segment = 1;
+    for (uint64_t i = 0; i < 400 && segment < 3; ++i) {
+      (void)rec->offer({i, i, 0, 0, 0}, noiseImage(size, 1), noiseImage(size, 2));
+      std::this_thread::sleep_for(std::chrono::milliseconds(3));
+      segment = rec->status().segment;
+    }
+    rec->stop();
+    const RecorderStatus st = rec->status();
+    ::_exit(st.segment >= 3 && st.faults >= 2 ? 0 : 12);
+  }
+  int status = 0;
+  ASSERT_EQ(::waitpid(pid, &status, 0), pid);
+  ASSERT_TRUE(WIFEXITED(status));
+  ASSERT_EQ(WEXITSTATUS(status), 0);
+  for (const char* part : {"live", "live-part2"}) {
+    auto r = Reader::open(tmp.path() / part);
+    ASSERT_TRUE(r) << part << ": " << r.error().message;
+    EXPECT_GE(r->size(), 5U) << part;
+    EXPECT_EQ(r->meta(0).frame, 0U) << part;
+  }
 }
 
 }  // namespace

@@ -22,9 +22,10 @@
 //   deformation frame sec nanosec rig dx dy dz vx vy vz ok total cx cy cz velocity_delay
 //            displacement_sigma velocity_sigma detections continuous frame_id
 //   health sec nanosec rig state state_text last_error source source_state trigger_state
-//            recorder_state tracking_state clock_state security_state clock_synchronized fps
-//            frames drops
-//            deadline_misses unpaired missing_triggers stages="name:p50/p99/max,..." frame_id
+//            recorder_state tracking_state clock_state security_state output_state
+//            clock_synchronized fps frames drops deadline_misses unpaired missing_triggers
+//            source_faults recorder_faults commands_accepted commands_refused
+//            stages="name:p50/p99/max,..." frame_id
 // then "summary features=N deformation=N health=N". Exit 0: every requested count reached;
 // 1: timeout (or interrupted) first, with what matched on stderr; 2: bad usage or a DDS error
 // (named on stderr).
@@ -216,6 +217,7 @@ static void printHealth(const pulsetrack_msgs_msg_dds__Health_* m) {
       {"tracking_state", m->tracking_state},
       {"clock_state", m->clock_state},
       {"security_state", m->security_state},
+      {"output_state", m->output_state},
   };
   for (size_t i = 0; i < sizeof strings / sizeof strings[0]; ++i) {
     printf(" %s=", strings[i].name);
@@ -223,8 +225,10 @@ static void printHealth(const pulsetrack_msgs_msg_dds__Health_* m) {
   }
   printf(" clock_synchronized=%d fps=%.9g", m->clock_synchronized ? 1 : 0, (double)m->fps);
   printf(" frames=%" PRIu64 " drops=%" PRIu64 " deadline_misses=%" PRIu64 " unpaired=%" PRIu64
-         " missing_triggers=%" PRIu64,
-         m->frames, m->drops, m->deadline_misses, m->unpaired, m->missing_triggers);
+         " missing_triggers=%" PRIu64 " source_faults=%" PRIu64 " recorder_faults=%" PRIu64
+         " commands_accepted=%" PRIu64 " commands_refused=%" PRIu64,
+         m->frames, m->drops, m->deadline_misses, m->unpaired, m->missing_triggers,
+         m->source_faults, m->recorder_faults, m->commands_accepted, m->commands_refused);
   // stages="capture:p50/p99/max,track:...", microseconds
   fputs(" stages=\"", stdout);
   for (uint32_t i = 0; i < m->stages._length; ++i) {

@@ -74,15 +74,18 @@ int runListen(const ListenArgs& a) {
       last_health = now;
       fmt::print(
           "health  {} {:9} {:.1f} fps, {} frames, {} drops, {} deadline misses, "
-          "{} missing triggers, {} unpaired; {}, trigger {}{}\n",
+          "{} missing triggers, {} unpaired, {} source outages, {} commands ({} refused); {}, "
+          "trigger {}{}\n",
           h.rig_id, stateName(h.state), h.fps, h.frames, h.drops, h.deadline_misses,
-          h.missing_triggers, h.unpaired, h.source, h.trigger_state,
+          h.missing_triggers, h.unpaired, h.source_faults, h.commands_accepted + h.commands_refused,
+          h.commands_refused, h.source, h.trigger_state,
           h.last_error[0] != 0 ? fmt::format(" ({})", h.last_error) : "");
       if (h.recorder_state != nullptr && std::string_view(h.recorder_state) != "off")
         fmt::print("        recorder {}\n", h.recorder_state);
       if (h.tracking_state != nullptr) fmt::print("        {}\n", h.tracking_state);
       if (h.clock_state != nullptr) fmt::print("        stamps {}\n", h.clock_state);
       if (h.security_state != nullptr) fmt::print("        DDS {}\n", h.security_state);
+      if (h.output_state != nullptr) fmt::print("        {}\n", h.output_state);
       for (uint32_t i = 0; i < h.stages._length; ++i) {
         const auto& s = h.stages._buffer[i];
         fmt::print("        {:8} p50 {} us, p99 {} us, max {} us\n", s.stage, s.p50_us, s.p99_us,

@@ -48,6 +48,8 @@ struct DaemonConfig {
   bool record = false;
   std::filesystem::path record_dir;  // a new folder per run inside it
   int record_slots = 32;
+  int record_min_free_mb = 1024;  // the recording stops below this much free space
+  bool record_resume = true;      // and resumes (a new segment) when the disk has room again
   vision::Roi roi{{483, 339, 400, 340}, {476, 344, 400, 340}};
   double depth_tolerance_mm = 20.0;
   double retry_interval_s = 1.0;    // between detections that found nothing

@@ -90,6 +90,9 @@ class Pipeline {
   // Returns "" when accepted, else the reason.
   std::string command(const pulsetrack_msgs_msg_dds__Command_& c);
   [[nodiscard]] uint64_t commandsRefused() const { return commands_refused_.load(); }
+  [[nodiscard]] uint64_t commandsAccepted() const { return commands_accepted_.load(); }
+  // Times the source went away (a fault, or no pair for 1 s or three trigger periods).
+  [[nodiscard]] uint64_t sourceFaults() const { return source_faults_.load(); }
 
  private:
   void captureLoop();
@@ -122,12 +125,19 @@ class Pipeline {
   };
   rt::LatestSlot<RoiRequest> roi_requests_;
   std::atomic<bool> paused_{false}, redetect_requested_{false};
-  std::atomic<uint64_t> commands_refused_{0};
+  std::atomic<uint64_t> commands_refused_{0}, commands_accepted_{0};
   rt::LatestSlot<std::string> command_errors_;  // the last refusal, for health
   std::string last_refusal_;                    // health thread's copy
   std::thread command_;
   std::atomic<int> ok_features_{0}, total_features_{0};
   std::atomic<int64_t> last_frame_ns_{0};
+  int64_t quiet_after_ns_ =
+      1'000'000'000;  // no pair for this long: the source is quiet (an outage)
+  std::atomic<uint64_t> source_faults_{0}, source_recoveries_{0};  // capture -> health
+  std::atomic<int64_t> source_outage_ns_{0};                       // the last outage's length
+  std::atomic<uint64_t> outage_lost_{0};  // pulses lost in outages (said as outages, not losses)
+  uint64_t outages_said_ = 0, recoveries_said_ = 0, recorder_faults_said_ = 0;  // health thread
+  int recorder_segment_said_ = 1;
   rt::LatestSlot<std::string> source_errors_;  // capture -> health, on a fault's edge
   std::string last_source_error_;              // health thread's copy
   std::thread capture_, track_, publish_;

@@ -71,13 +71,22 @@ class CameraSource {
   [[nodiscard]] virtual std::string triggerState() const = 0;
 };
 
-// Faults the simulated rig can be told to show, so that the daemon's counting and health can be
-// watched (a demo for the technician, and the tests). 0 disables each.
+// Faults the simulated rig (and a recording replayed at a rate, as a live camera) can be told to
+// show, so that the daemon's counting, health and recovery can be watched (a demo for the
+// technician, the tests, the soak benchmark). 0 disables each.
 struct SimFaults {
   int missing_trigger_every = 0;  // every Nth pulse never fires (neither camera exposes)
   int left_drop_every = 0;        // the left driver drops every Nth frame (a gap in its counter)
   int right_miss_every = 0;       // the right camera misses every Nth pulse (no gap, no frame)
+  // The cameras go away (next() says kFault, as a driver whose device vanished) for `outage_s`,
+  // at outage_every_s, 2 * outage_every_s, ... after start, then come back. The trigger goes on
+  // firing meanwhile: its pulses are missing triggers.
+  double outage_every_s = 0;
+  double outage_s = 0;
 };
+// What an injected outage says (lastFault()).
+inline constexpr const char* kInjectedOutage =
+    "the cameras are gone (injected fault: source.faults.outage_s)";
 
 // The simulator live: a software trigger at `fps` (absolute deadlines on CLOCK_MONOTONIC).
 // Each camera's frames go through the FramePairer as a driver's would; a pair whose trigger
@@ -98,8 +107,9 @@ struct ReplayOptions {
   bool preload = false;  // decode every frame into memory first (no disk or zstd per frame)
 };
 
-// A recording, replayed.
+// A recording, replayed. At Pace::kRate it can show missing triggers and outages (`faults`).
 vision::Result<std::unique_ptr<CameraSource>> makeReplaySource(
-    const std::filesystem::path& recording, const ReplayOptions& options);
+    const std::filesystem::path& recording, const ReplayOptions& options,
+    const SimFaults& faults = {});
 
 }  // namespace pulsetrack::drivers
