@@ -56,7 +56,9 @@ class SimSource final : public CameraSource {
       int64_t due = t0_ns_ + static_cast<int64_t>(index_) * period_ns_;
       const int64_t now = rt::monotonicNs();
       outage_ = inOutage(faults_, now - t0_ns_);
-      if (outage_) {  // the cameras are gone: their pulses pass with no frame
+      // The cameras are gone: their pulses pass with no frame. A pulse from before the outage
+      // that a slow consumer has not taken yet is still gone through below (a late pair).
+      if (outage_ && (due > now || inOutage(faults_, due - t0_ns_))) {
         while (due <= now) due = t0_ns_ + static_cast<int64_t>(++index_) * period_ns_;
         return Next::kFault;
       }

@@ -11,6 +11,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <csignal>
 #include <filesystem>
@@ -286,7 +287,9 @@ TEST(Daemon, ARecordingThatFillsTheDiskStopsCleanlyAndTrackingGoesOn) {
       ++after_stop;
     while (sub.health->takeOne(&sub.h, std::chrono::milliseconds(0))) {
       recorder = sub.h.recorder_state;
-      if (recorder.starts_with("stopped")) stopped = recorder;
+      // The first stop: the first segment's frames (the recorder then resumes in DIR-part2,
+      // the file-size limit leaving the file system room, and may stop again).
+      if (recorder.starts_with("stopped") && stopped.empty()) stopped = recorder;
       if (!stopped.empty() && sub.h.state != 1) ++not_ok_after;
     }
   }
@@ -298,14 +301,27 @@ TEST(Daemon, ARecordingThatFillsTheDiskStopsCleanlyAndTrackingGoesOn) {
   EXPECT_GE(after_stop, 10);  // features still published after the disk filled
   EXPECT_EQ(not_ok_after, 0);
   ASSERT_TRUE(std::filesystem::exists(recordings));
-  const auto rec = std::filesystem::directory_iterator(recordings)->path();
-  auto r = record::Reader::open(rec);
+  std::vector<std::filesystem::path> segments;
+  for (const auto& e : std::filesystem::directory_iterator(recordings))
+    segments.push_back(e.path());
+  std::sort(segments.begin(), segments.end());  // DIR, then DIR-part2, ...
+  ASSERT_FALSE(segments.empty());
+  EXPECT_EQ(segments[0].filename().string().find("-part"), std::string::npos) << segments[0];
+  auto r = record::Reader::open(segments[0]);
   ASSERT_TRUE(r) << r.error().message;
   EXPECT_GT(r->size(), 2U);
   cv::Mat l, rr;
   for (size_t i = 0; i < r->size(); ++i) EXPECT_TRUE(r->read(i, l, rr)) << i;
   const auto n = std::stoul(stopped.substr(std::string("stopped after ").size()));
   EXPECT_EQ(r->size(), n);
+  for (size_t k = 1; k < segments.size(); ++k) {  // resumed segments read back from frame 0
+    EXPECT_EQ(segments[k].string(), segments[0].string() + "-part" + std::to_string(k + 1));
+    auto part = record::Reader::open(segments[k]);
+    ASSERT_TRUE(part) << part.error().message;
+    if (part->size() > 0) {
+      EXPECT_EQ(part->meta(0).frame, 0U) << segments[k];
+    }
+  }
 }
 
 // A subscriber process that dies (SIGKILL, no goodbye) does not disturb the daemon: health
