@@ -27,28 +27,14 @@
 #include <utility>
 #include <vector>
 
+#include "bench_process.hpp"
 #include "pulsetrack/dds/dds.hpp"
 #include "pulsetrack/rt/heartbeat.hpp"
 
-extern char** environ;
-
 namespace {
 
-pid_t spawn(const std::vector<std::string>& args) {
-  std::vector<char*> argv;
-  argv.reserve(args.size() + 1);
-  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-  argv.push_back(nullptr);
-  pid_t pid = 0;
-  if (posix_spawn(&pid, argv[0], nullptr, nullptr, argv.data(), environ) != 0) return -1;
-  return pid;
-}
-
-int waitExit(pid_t pid) {
-  int status = 0;
-  waitpid(pid, &status, 0);
-  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-}
+using pulsetrack::bench::spawn;
+using pulsetrack::bench::waitExit;
 
 }  // namespace
 

@@ -52,38 +52,17 @@
 #include <thread>
 #include <vector>
 
+#include "bench_process.hpp"
 #include "pulsetrack/dds/dds.hpp"
 #include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/rt/heartbeat.hpp"
 
-extern char** environ;
-
 namespace {
 
+using pulsetrack::bench::spawn;
+using pulsetrack::bench::waitExit;
+
 namespace fs = std::filesystem;
-
-pid_t spawn(const std::vector<std::string>& args, const char* out = nullptr) {
-  std::vector<char*> argv;
-  argv.reserve(args.size() + 1);
-  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-  argv.push_back(nullptr);
-  posix_spawn_file_actions_t fa;
-  posix_spawn_file_actions_init(&fa);
-  if (out != nullptr) {
-    posix_spawn_file_actions_addopen(&fa, 1, out, O_WRONLY | O_CREAT | O_APPEND, 0644);
-    posix_spawn_file_actions_adddup2(&fa, 1, 2);
-  }
-  pid_t pid = 0;
-  const int rc = posix_spawn(&pid, argv[0], &fa, nullptr, argv.data(), environ);
-  posix_spawn_file_actions_destroy(&fa);
-  return rc == 0 ? pid : -1;
-}
-
-int waitExit(pid_t pid) {
-  int status = 0;
-  waitpid(pid, &status, 0);
-  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-}
 
 double now_s() { return static_cast<double>(pulsetrack::rt::monotonicNs()) * 1e-9; }
 

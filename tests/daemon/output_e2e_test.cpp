@@ -138,7 +138,18 @@ TEST(Ros2Output, ANodeBuiltFromTheMsgFilesReceivesANamespacedRigAndNothingOfAnot
   EXPECT_GT(max_features_ok, 10);
   EXPECT_NE(commanded.output.find("command sent request=77"), std::string::npos)
       << commanded.output;
-  for (const auto& h : commanded.health) EXPECT_EQ(h.at("rig"), "rig-a");
+  // Health's counters as the ROS 2 node decodes them (built from Health.msg): the Command it
+  // sent (keep last 10, into the daemon's keep-all reader) is counted refused; no outage.
+  uint64_t refused = 0;
+  for (const auto& h : commanded.health) {
+    EXPECT_EQ(h.at("rig"), "rig-a");
+    EXPECT_EQ(h.at("source_faults"), "0");
+    EXPECT_EQ(h.at("recorder_faults"), "0");
+    refused = std::max<uint64_t>(refused, std::stoull(h.at("commands_refused")));
+  }
+  EXPECT_GE(refused, 1U) << commanded.output;
+  EXPECT_NE(ra.output.find("output_state=\"readers matched: features "), std::string::npos)
+      << ra.output;
   EXPECT_NE(commanded.output.find("command 77 'set_roi' refused: left ROI 1300,1000 100x100: not "
                                   "inside"),
             std::string::npos)
