@@ -177,6 +177,27 @@ void BM_OurVideoMatch(benchmark::State& state) {
 }
 BENCHMARK(BM_OurVideoMatch)->Name("ours_video_match")->Unit(benchmark::kMicrosecond);
 
+// The translation refinement alone, from the last position: the Highway kernel against its
+// scalar reference (the ratio that says what the SIMD target buys, on x86 and under emulation).
+template <bool kSimd>
+void BM_OurRefine(benchmark::State& state) {
+  Fixture& f = fixture();
+  for (auto _ : state) {
+    for (int c = 0; c < 2; ++c) {
+      const cv::Mat& img = f.next[c];
+      for (size_t i = 0; i < f.points[c].size(); ++i) {
+        benchmark::DoNotOptimize(f.shift[c][i].refine(img.data, img.step, img.cols, img.rows,
+                                                      cv::Vec2d(f.last[c][i].x, f.last[c][i].y), 10,
+                                                      2e-3, /*scalar=*/!kSimd));
+      }
+    }
+  }
+  state.SetItemsProcessed(state.iterations() *
+                          static_cast<int64_t>(f.points[0].size() + f.points[1].size()));
+}
+BENCHMARK_TEMPLATE(BM_OurRefine, true)->Name("ours_simd_refine")->Unit(benchmark::kMicrosecond);
+BENCHMARK_TEMPLATE(BM_OurRefine, false)->Name("ours_scalar_refine")->Unit(benchmark::kMicrosecond);
+
 void BM_MatchTemplate(benchmark::State& state) {
   Fixture& f = fixture();
   cv::Mat result;
@@ -268,11 +289,19 @@ class RatioReporter : public benchmark::ConsoleReporter {
     std::cout << "per frame pair (" << fixture().points[0].size() << "+"
               << fixture().points[1].size() << " features, 15x15, +-8 px), time and its ratio "
               << "to ours_video_match:\n";
-    for (const char* n :
-         {"ours_video_match", "ours_simd_ncc_exhaustive", "ours_scalar_ncc_exhaustive",
-          "opencv_matchTemplate_minMaxLoc", "opencv_calcOpticalFlowPyrLK"}) {
+    for (const char* n : {"ours_video_match", "ours_simd_ncc_exhaustive",
+                          "ours_scalar_ncc_exhaustive", "ours_simd_refine", "ours_scalar_refine",
+                          "opencv_matchTemplate_minMaxLoc", "opencv_calcOpticalFlowPyrLK"}) {
       if (get(n) > 0 && ours > 0)
         std::cout << "  " << n << ": " << get(n) << " us, " << get(n) / ours << "x\n";
+    }
+    // Under qemu (preset arm64) only these ratios mean anything, not the times.
+    std::cout << "SIMD (" << pulsetrack::vision::nccTarget() << ") vs the scalar reference:\n";
+    for (const auto& [simd, scalar] :
+         {std::pair{"ours_simd_ncc_exhaustive", "ours_scalar_ncc_exhaustive"},
+          std::pair{"ours_simd_refine", "ours_scalar_refine"}}) {
+      if (get(simd) > 0 && get(scalar) > 0)
+        std::cout << "  " << scalar << " / " << simd << ": " << get(scalar) / get(simd) << "x\n";
     }
     printAccuracy();
   }

@@ -33,6 +33,7 @@ int run(int argc, char** argv) {
   CLI::App app(
       "pulsetrackd: tracks the brain surface's motion with a stereo rig and publishes it "
       "over DDS (rt/pulsetrack/features, deformation, health).");
+  app.set_version_flag("--version", std::string("pulsetrackd ") + PULSETRACK_VERSION);
   std::string config_path = "/etc/pulsetrack/pulsetrackd.toml";
   bool check = false;
   double run_for = 0.0;

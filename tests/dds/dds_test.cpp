@@ -130,9 +130,20 @@ TEST(Dds, AnotherProcessPublishesFeaturesAndALateJoinerGetsHealth) {
   const uint32_t domain = 71;
   pid_t pid = 0;
   std::string d = std::to_string(domain);
-  char* argv[] = {const_cast<char*>(PULSETRACK_DDS_PEER), d.data(), const_cast<char*>("rig-7"),
-                  nullptr};
-  ASSERT_EQ(posix_spawn(&pid, PULSETRACK_DDS_PEER, nullptr, nullptr, argv, environ), 0);
+  // A cross build's peer runs under the same emulator as this test (qemu-aarch64-static -L
+  // SYSROOT, '|'-separated; QEMU_CPU is inherited): qemu-user runs no foreign program it is asked
+  // to exec.
+  std::vector<std::string> args;
+  std::istringstream emulator(PULSETRACK_TEST_EMULATOR);
+  for (std::string word; std::getline(emulator, word, '|');) {
+    if (!word.empty()) args.push_back(word);
+  }
+  args.insert(args.end(), {PULSETRACK_DDS_PEER, d, "rig-7"});
+  std::vector<char*> argv;
+  argv.reserve(args.size() + 1);
+  for (auto& a : args) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  ASSERT_EQ(posix_spawnp(&pid, argv[0], nullptr, nullptr, argv.data(), environ), 0) << args[0];
   auto p = Participant::create(domain);
   ASSERT_TRUE(p) << p.error().message;
   // Join late: the peer wrote its health before this reader existed.

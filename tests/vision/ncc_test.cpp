@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 #include <hwy/targets.h>
 
+#include <cstdlib>
 #include <iostream>
 #include <opencv2/imgproc.hpp>
 #include <random>
@@ -37,6 +38,15 @@ TEST(Ncc, SimdEqualsScalarBitForBitOnEveryTarget) {
     expectSimdEqualsScalar();
   }
   hwy::SetSupportedTargetsForTest(0);  // back to the real CPU
+}
+
+// The cross build's test presets name the target qemu's CPU must select (arm64-neon: NEON on
+// -cpu cortex-a72; arm64-sve: SVE2 on -cpu max), so a run that silently fell back to another
+// target (or to the scalar code) fails instead of passing on the wrong kernels.
+TEST(Ncc, DispatchesToTheTargetThisRunExpects) {
+  const char* expected = std::getenv("PULSETRACK_EXPECT_SIMD_TARGET");
+  if (expected == nullptr) GTEST_SKIP() << "PULSETRACK_EXPECT_SIMD_TARGET not set (native run)";
+  EXPECT_STREQ(nccTarget(), expected);
 }
 
 void expectSimdEqualsScalar() {
