@@ -219,6 +219,20 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
         s.integer("stereo_refresh", c.tracker.stereo_refresh, 0, c.tracker.max_features);
     s.finish();
   }
+  if (const toml::table* t = r.table("field")) {
+    TableReader s(*t, file, "field", &error);
+    vision::FieldConfig& f = c.field;
+    f.enabled = s.boolean("enabled", f.enabled);
+    f.spacing_mm = s.number("spacing_mm", f.spacing_mm, 0.05, 20.0);
+    f.margin_mm = s.number("margin_mm", f.margin_mm, 0.0, 50.0);
+    f.smoothing = s.number("smoothing", f.smoothing, 1e-6, 1e6);
+    f.huber_k = s.number("huber_k", f.huber_k, 1.0, 100.0);
+    f.max_grid_points = s.integer("max_grid_points", f.max_grid_points, 4, 1'000'000);
+    f.reach = s.number("reach", f.reach, 1.0, 100.0);
+    s.finish();
+    if (auto ok = vision::checkFieldConfig(f); !ok && error.empty())
+      error = fmt::format("{}: {}", file, ok.error().message);
+  }
   if (const toml::table* t = r.table("realtime")) {
     TableReader s(*t, file, "realtime", &error);
     c.lock_memory = s.boolean("lock_memory", c.lock_memory);

@@ -2,7 +2,12 @@
 
 #include <fmt/format.h>
 
+#include <array>
+#include <bit>
 #include <cmath>
+#include <cstring>
+#include <limits>
+#include <memory>
 #include <thread>
 
 #include "pulsetrack/daemon/command.hpp"
@@ -28,6 +33,10 @@ const char* toString(State s) {
 namespace {
 
 constexpr const char* kFrameId = "pulsetrack_left_camera";
+constexpr size_t kCloudFloats = 7;
+constexpr uint32_t kCloudStep = kCloudFloats * sizeof(float);
+constexpr std::array<const char*, kCloudFloats> kCloudFieldNames = {"x",  "y",  "z",         "dx",
+                                                                    "dy", "dz", "confidence"};
 
 geometry_msgs_msg_dds__Point_ point(const cv::Vec3d& mm) {
   return {mm[0] * 1e-3, mm[1] * 1e-3, mm[2] * 1e-3};
@@ -92,6 +101,13 @@ vision::Result<std::vector<std::string>> Pipeline::start() {
   features_writer_ = std::move(*fw);
   deformation_writer_ = std::move(*dw);
   health_writer_ = std::move(*hw);
+  if (config_.field.enabled) {
+    auto ffw =
+        dds::Writer::create(participant_, topics.field.c_str(),
+                            &sensor_msgs_msg_dds__PointCloud2__desc, dds::Profile::kSensorData);
+    if (!ffw) return std::unexpected(ffw.error());
+    field_writer_ = std::move(*ffw);
+  }
   if (auto ok = source_->start(); !ok) return std::unexpected(ok.error());
   std::vector<std::string> warnings;
   if (config_.lock_memory) {
@@ -292,6 +308,31 @@ void Pipeline::publishLoop() {
   pulsetrack_msgs_msg_dds__Deformation_ d{};
   d.header.frame_id = const_cast<char*>(kFrameId);
   d.rig_id = config_.rig_id.data();
+  // The field's cloud: x y z (where each grid point is now), dx dy dz (since the signal's first
+  // pair), m, and confidence; float32 little-endian, organized as the grid (rows x cols).
+  std::unique_ptr<vision::DeformationField> field;
+  std::vector<uint8_t> cloud_data;
+  std::array<sensor_msgs_msg_dds__PointField_, kCloudFloats> cloud_fields{};
+  sensor_msgs_msg_dds__PointCloud2_ cloud{};
+  if (config_.field.enabled) {
+    field = std::make_unique<vision::DeformationField>(config_.field, config_.tracker.max_features);
+    cloud_data.assign(static_cast<size_t>(config_.field.max_grid_points) * kCloudStep, 0);
+    for (size_t i = 0; i < cloud_fields.size(); ++i) {
+      cloud_fields[i].name = const_cast<char*>(kCloudFieldNames[i]);
+      cloud_fields[i].offset = static_cast<uint32_t>(i * sizeof(float));
+      cloud_fields[i].datatype = 7;  // sensor_msgs/PointField FLOAT32
+      cloud_fields[i].count = 1;
+    }
+    cloud.header.frame_id = const_cast<char*>(kFrameId);
+    cloud.fields._buffer = cloud_fields.data();
+    cloud.fields._length = cloud.fields._maximum = static_cast<uint32_t>(cloud_fields.size());
+    cloud.fields._release = false;
+    cloud.is_bigendian = std::endian::native == std::endian::big;
+    cloud.point_step = kCloudStep;
+    cloud.data._buffer = cloud_data.data();
+    cloud.data._maximum = static_cast<uint32_t>(cloud_data.size());
+    cloud.data._release = false;
+  }
   uint64_t seen = 0;
   while (running_.load(std::memory_order_relaxed)) {
     publish_beat_.beat();
@@ -332,6 +373,34 @@ void Pipeline::publishLoop() {
       (void)deformation_writer_.write(&d);
     }
     publish_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - r->tracked_ns));
+    // The dense field, after the features and the deformation are out (off their latency).
+    if (field != nullptr && field->update(r->features, r->detected, def.detections)) {
+      const int m = std::min(field->points(), config_.field.max_grid_points);
+      bool dense = true;
+      for (int k = 0; k < m; ++k) {
+        const double conf = field->confidence(k);
+        std::array<float, kCloudFloats> v{};
+        if (conf > 0.0) {
+          const cv::Vec3d disp = field->displacement(k), at = field->rest(k) + disp;
+          v = {static_cast<float>(at[0] * 1e-3),   static_cast<float>(at[1] * 1e-3),
+               static_cast<float>(at[2] * 1e-3),   static_cast<float>(disp[0] * 1e-3),
+               static_cast<float>(disp[1] * 1e-3), static_cast<float>(disp[2] * 1e-3),
+               static_cast<float>(conf)};
+        } else {
+          v.fill(std::numeric_limits<float>::quiet_NaN());  // ROS's invalid point
+          v[kCloudFloats - 1] = 0.0F;
+          dense = false;
+        }
+        std::memcpy(cloud_data.data() + static_cast<size_t>(k) * kCloudStep, v.data(), kCloudStep);
+      }
+      cloud.header.stamp = stamp;
+      cloud.width = static_cast<uint32_t>(field->cols());
+      cloud.height = static_cast<uint32_t>(m / std::max(1, field->cols()));
+      cloud.row_step = cloud.width * kCloudStep;
+      cloud.data._length = cloud.row_step * cloud.height;
+      cloud.is_dense = dense;
+      (void)field_writer_.write(&cloud);
+    }
     consumed_.fetch_add(1);
     consumed_.notify_one();
   }
@@ -519,8 +588,10 @@ State Pipeline::health(const Notifier& notifier) {
   h.clock_state = clock_state.data();
   h.security_state = const_cast<char*>(participant_.securityState().c_str());
   std::string output_state = fmt::format(
-      "readers matched: features {}, deformation {}, health {}", features_writer_.matchedReaders(),
-      deformation_writer_.matchedReaders(), health_writer_.matchedReaders());
+      "readers matched: features {}, deformation {}, health {}, field {}",
+      features_writer_.matchedReaders(), deformation_writer_.matchedReaders(),
+      health_writer_.matchedReaders(),
+      config_.field.enabled ? std::to_string(field_writer_.matchedReaders()) : "off");
   h.output_state = output_state.data();
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
   std::string err =

@@ -78,7 +78,8 @@ Result<Topics> Topics::forNamespace(std::string_view ns) {
     prefix += std::string(ns) + "/";
   }
   prefix += "pulsetrack/";
-  return Topics{prefix + "features", prefix + "deformation", prefix + "health", prefix + "command"};
+  return Topics{prefix + "features", prefix + "deformation", prefix + "health", prefix + "command",
+                prefix + "field"};
 }
 
 Entity& Entity::operator=(Entity&& o) noexcept {

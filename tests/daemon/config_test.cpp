@@ -39,6 +39,13 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_EQ(d->topics.features, "rt/pulsetrack/features");
   EXPECT_EQ(d->retry_interval_s, c->retry_interval_s);
   EXPECT_EQ(d->velocity_window_s, c->velocity_window_s);
+  // The shipped [field] says what the defaults are.
+  EXPECT_TRUE(c->field.enabled);
+  EXPECT_EQ(c->field.spacing_mm, d->field.spacing_mm);
+  EXPECT_EQ(c->field.smoothing, d->field.smoothing);
+  EXPECT_EQ(c->field.reach, d->field.reach);
+  EXPECT_EQ(c->field.max_grid_points, d->field.max_grid_points);
+  EXPECT_EQ(d->topics.field, "rt/pulsetrack/field");
   EXPECT_EQ(c->sim_faults.outage_every_s, 0.0);
   EXPECT_EQ(d->record_min_free_mb, c->record_min_free_mb);
   EXPECT_EQ(c->record_min_free_mb, 1024);
@@ -142,6 +149,10 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError("[source]\nlossless = true\n", "source.lossless: only a replay");
   expectError("[tracker]\nretry_interval_s = 0\n", "tracker.retry_interval_s");
   expectError("[tracker]\nvelocity_window_s = 20\n", "tracker.velocity_window_s");
+  expectError("[field]\nspacing_mm = 0.01\n", "pulsetrackd.toml:2: field.spacing_mm");
+  expectError("[field]\nsmoothing = 0\n", "field.smoothing");
+  expectError("[field]\nreach = 0.5\n", "field.reach");
+  expectError("[field]\nspacing = 1.0\n", "field.spacing");  // an unknown key
   expectError("[source.left]\npixel_format = \"RGB\"\n",
               "source.left.pixel_format: expected one of");
   expectError("[source.right]\nbuffers = 1\n", "pulsetrackd.toml:2: source.right.buffers");

@@ -12,8 +12,11 @@
 // - the QoS rmw_cyclonedds derives from rclcpp's profiles (create_readwrite_qos in rmw_node.cpp).
 //
 // usage: ros2_subscriber --domain N [--namespace NS] [--features N] [--deformation N]
-//                        [--health N] [--timeout S]
-// --features/--deformation/--health: samples to wait for (default 1 each, 0: don't wait).
+//                        [--health N] [--field N] [--timeout S]
+// --features/--deformation/--health: samples to wait for (default 1 each, 0: don't wait);
+// --field: sensor_msgs/PointCloud2 samples of rt/[NS/]pulsetrack/field (default 0), decoded as
+// rviz2 and PCL decode a cloud: each channel found by its name in `fields`, read at its declared
+// offset in each point_step with its declared datatype and the cloud's is_bigendian.
 // Prints one line per sample to stdout (flushed), space-separated key=value; free-text strings
 // are always "quoted" (C escapes: \" \\ \n \t \xHH), rig and frame_id only when they need it;
 // doubles %.17g (features' x0 y0 z0 %.9g, nan without features; health fps %.9g), bools 0/1:
@@ -26,7 +29,11 @@
 //            clock_synchronized fps frames drops deadline_misses unpaired missing_triggers
 //            source_faults recorder_faults commands_accepted commands_refused
 //            stages="name:p50/p99/max,..." frame_id
-// then "summary features=N deformation=N health=N". Exit 0: every requested count reached;
+//   field sec nanosec width height point_step row_step bytes is_bigendian is_dense
+//            fields="name:offset:datatype:count,..." points valid(=finite x y z) mean_dx mean_dy
+//            mean_dz (over the valid points, m) mean_confidence min_z max_z, the middle grid
+//            point's mx my mz mdx mdy mdz mconf, missing="names not found" frame_id
+// then "summary features=N deformation=N health=N field=N". Exit 0: every requested count reached;
 // 1: timeout (or interrupted) first, with what matched on stderr; 2: bad usage or a DDS error
 // (named on stderr).
 #define _POSIX_C_SOURCE 200809L
@@ -45,9 +52,9 @@
 
 #include "ros2_types.h"
 
-enum { kFeatures, kDeformation, kHealth, kTopics };
+enum { kFeatures, kDeformation, kHealth, kField, kTopics };
 
-static const char* const kLeaf[kTopics] = {"features", "deformation", "health"};
+static const char* const kLeaf[kTopics] = {"features", "deformation", "health", "field"};
 
 static volatile sig_atomic_t g_stop = 0;
 
@@ -60,11 +67,12 @@ static void usage(FILE* out) {
   fprintf(out,
           "usage: ros2_subscriber --domain N [--namespace NS] [--features N] [--deformation N]\n"
           "       [--command start|stop|redetect|set_roi] (publishes one Command first)\n"
-          "                       [--health N] [--timeout S]\n"
+          "                       [--health N] [--field N] [--timeout S]\n"
           "Subscribes to rt/[NS/]pulsetrack/{features,deformation,health} as a ROS 2 node over\n"
           "rmw_cyclonedds_cpp would (types from the .msg files, ROS 2 QoS, XCDR1, keyless) and\n"
           "prints one line per sample. --features/--deformation/--health: samples to wait for\n"
-          "(default 1 each; 0: don't wait for that topic). --timeout: seconds (default 30).\n"
+          "(default 1 each; 0: don't wait for that topic). --field N: PointCloud2 samples of\n"
+          "rt/[NS/]pulsetrack/field (default 0). --timeout: seconds (default 30).\n"
           "Exit 0 when every count is reached, 1 on timeout, 2 on usage or DDS errors.\n"
           "DDS configuration: CYCLONEDDS_URI from the environment.\n");
 }
@@ -244,6 +252,89 @@ static void printHealth(const pulsetrack_msgs_msg_dds__Health_* m) {
   putchar('\n');
 }
 
+// One channel of a point: found by name in the cloud's `fields`, read at its declared offset
+// with its declared datatype and byte order (PointField.msg: INT8 1 ... FLOAT32 7, FLOAT64 8).
+static bool readChannel(const sensor_msgs_msg_dds__PointCloud2_* m, const char* name,
+                        uint32_t point, double* out) {
+  for (uint32_t i = 0; i < m->fields._length; ++i) {
+    const sensor_msgs_msg_dds__PointField_* f = &m->fields._buffer[i];
+    if (f->name == NULL || strcmp(f->name, name) != 0) continue;
+    const size_t size = f->datatype == 7 ? 4 : f->datatype == 8 ? 8 : 0;
+    const size_t at = (size_t)point * m->point_step + f->offset;
+    if (size == 0 || f->offset + size > m->point_step || at + size > m->data._length) return false;
+    unsigned char b[8];
+    memcpy(b, m->data._buffer + at, size);
+    const uint16_t probe = 1;
+    const bool host_big = *(const unsigned char*)&probe == 0;
+    if ((m->is_bigendian != 0) != host_big) {
+      for (size_t k = 0; k < size / 2; ++k) {
+        const unsigned char c = b[k];
+        b[k] = b[size - 1 - k];
+        b[size - 1 - k] = c;
+      }
+    }
+    if (size == 4) {
+      float v;
+      memcpy(&v, b, 4);
+      *out = v;
+    } else {
+      memcpy(out, b, 8);
+    }
+    return true;
+  }
+  return false;
+}
+
+static void printField(const sensor_msgs_msg_dds__PointCloud2_* m) {
+  fputs("field", stdout);
+  printStamp(&m->header);
+  printf(" width=%" PRIu32 " height=%" PRIu32 " point_step=%" PRIu32 " row_step=%" PRIu32
+         " bytes=%" PRIu32 " is_bigendian=%d is_dense=%d",
+         m->width, m->height, m->point_step, m->row_step, m->data._length, m->is_bigendian ? 1 : 0,
+         m->is_dense ? 1 : 0);
+  fputs(" fields=\"", stdout);
+  for (uint32_t i = 0; i < m->fields._length; ++i) {
+    const sensor_msgs_msg_dds__PointField_* f = &m->fields._buffer[i];
+    printf("%s%s:%" PRIu32 ":%u:%" PRIu32, i > 0 ? "," : "", f->name ? f->name : "", f->offset,
+           (unsigned)f->datatype, f->count);
+  }
+  putchar('"');
+  static const char* const kNames[7] = {"x", "y", "z", "dx", "dy", "dz", "confidence"};
+  const uint32_t points = m->width * m->height;
+  double sum[7] = {0}, mid[7] = {NAN, NAN, NAN, NAN, NAN, NAN, NAN};
+  double min_z = INFINITY, max_z = -INFINITY;
+  uint32_t valid = 0;
+  char missing[128] = "";
+  for (int c = 0; c < 7; ++c) {
+    double v;
+    if (points == 0 || !readChannel(m, kNames[c], 0, &v)) {
+      strncat(missing, kNames[c], sizeof missing - strlen(missing) - 2);
+      strcat(missing, ",");
+    }
+  }
+  for (uint32_t p = 0; p < points && missing[0] == '\0'; ++p) {
+    double v[7];
+    for (int c = 0; c < 7; ++c) (void)readChannel(m, kNames[c], p, &v[c]);
+    if (p == (m->height / 2) * m->width + m->width / 2) memcpy(mid, v, sizeof v);
+    if (!isfinite(v[0]) || !isfinite(v[1]) || !isfinite(v[2])) continue;
+    ++valid;
+    for (int c = 0; c < 7; ++c) sum[c] += v[c];
+    if (v[2] < min_z) min_z = v[2];
+    if (v[2] > max_z) max_z = v[2];
+  }
+  const double n = valid > 0 ? (double)valid : (double)NAN;
+  printf(" points=%" PRIu32 " valid=%" PRIu32 " mean_dx=%.9g mean_dy=%.9g mean_dz=%.9g"
+         " mean_confidence=%.9g min_z=%.9g max_z=%.9g",
+         points, valid, sum[3] / n, sum[4] / n, sum[5] / n, sum[6] / n, min_z, max_z);
+  printf(" mx=%.9g my=%.9g mz=%.9g mdx=%.9g mdy=%.9g mdz=%.9g mconf=%.9g", mid[0], mid[1], mid[2],
+         mid[3], mid[4], mid[5], mid[6]);
+  fputs(" missing=", stdout);
+  putQuoted(missing);
+  fputs(" frame_id=", stdout);
+  putToken(m->header.frame_id);
+  putchar('\n');
+}
+
 // The reader QoS rmw_cyclonedds_cpp (Humble, rmw_node.cpp create_readwrite_qos) makes of an
 // rmw_qos_profile_t with the given history depth, reliability and durability; deadline and
 // lifespan unset, liveliness automatic with an infinite lease (the profiles' defaults), local
@@ -282,7 +373,7 @@ static int fail(const char* what, const char* topic, dds_return_t rc) {
 int main(int argc, char** argv) {
   uint32_t domain = UINT32_MAX;
   const char* ns = "";
-  uint32_t want[kTopics] = {1, 1, 1};
+  uint32_t want[kTopics] = {1, 1, 1, 0};
   double timeout_s = 30.0;
   const char* command = NULL;  // --command: publish one Command as a ROS 2 node would
   for (int i = 1; i < argc; ++i) {
@@ -303,6 +394,8 @@ int main(int argc, char** argv) {
       ok = ok && parseU32(v, 1000000000u, &want[kDeformation]);
     else if (strcmp(a, "--health") == 0)
       ok = ok && parseU32(v, 1000000000u, &want[kHealth]);
+    else if (strcmp(a, "--field") == 0)
+      ok = ok && parseU32(v, 1000000000u, &want[kField]);
     else if (strcmp(a, "--timeout") == 0)
       ok = ok && parseSeconds(v, &timeout_s);
     else if (strcmp(a, "--command") == 0)
@@ -361,15 +454,20 @@ int main(int argc, char** argv) {
 
   const dds_topic_descriptor_t* desc[kTopics] = {&pulsetrack_msgs_msg_dds__Features__desc,
                                                  &pulsetrack_msgs_msg_dds__Deformation__desc,
-                                                 &pulsetrack_msgs_msg_dds__Health__desc};
+                                                 &pulsetrack_msgs_msg_dds__Health__desc,
+                                                 &sensor_msgs_msg_dds__PointCloud2__desc};
   // features, deformation: rclcpp::SensorDataQoS() = rmw_qos_profile_sensor_data (best effort,
   // keep last 5, volatile). health: rmw_qos_profile_default made keep last 1 and transient
   // local, i.e. rclcpp::QoS(1).reliable().transient_local(): what a ROS 2 node that wants the
   // latched health value (the daemon's last one, also when it joins late) subscribes with.
+  // field: SensorDataQoS too (rviz2's PointCloud2 display's default is reliable; a reliable
+  // reader does not match a best-effort writer, so rviz2 is set to best effort: docs/ros2.md).
   dds_entity_t reader[kTopics];
   const dds_entity_t ws = dds_create_waitset(pp);
   if (ws < 0) return fail("cannot create a waitset", NULL, ws);
   for (int t = 0; t < kTopics; ++t) {
+    reader[t] = 0;
+    if (t == kField && want[kField] == 0) continue;  // only when asked (a role may not read it)
     const dds_entity_t tp = dds_create_topic(pp, desc[t], topic[t], NULL, NULL);
     if (tp < 0) return fail("cannot create the topic", topic[t], tp);
     dds_qos_t* qos = t == kHealth ? ros2Qos(1, true, true) : ros2Qos(5, false, false);
@@ -423,11 +521,12 @@ int main(int argc, char** argv) {
     fflush(stdout);
   }
 
-  uint32_t got[kTopics] = {0, 0, 0};
+  uint32_t got[kTopics] = {0, 0, 0, 0};
   const int64_t deadline = monotonicNs() + (int64_t)(timeout_s * 1e9);
   bool done = false;
   while (!g_stop) {
     for (int t = 0; t < kTopics; ++t) {
+      if (reader[t] == 0) continue;
       for (;;) {
         void* buf[16] = {NULL};  // NULL: Cyclone lends the samples
         dds_sample_info_t info[16];
@@ -439,8 +538,10 @@ int main(int argc, char** argv) {
             printFeatures(buf[i]);
           else if (t == kDeformation)
             printDeformation(buf[i]);
-          else
+          else if (t == kHealth)
             printHealth(buf[i]);
+          else
+            printField(buf[i]);
           fflush(stdout);
           ++got[t];
         }
@@ -449,7 +550,7 @@ int main(int argc, char** argv) {
       }
     }
     done = got[kFeatures] >= want[kFeatures] && got[kDeformation] >= want[kDeformation] &&
-           got[kHealth] >= want[kHealth];
+           got[kHealth] >= want[kHealth] && got[kField] >= want[kField];
     if (done) break;
     const int64_t left = deadline - monotonicNs();
     if (left <= 0) break;
@@ -458,13 +559,15 @@ int main(int argc, char** argv) {
     if (rc < 0) return fail("cannot wait", NULL, rc);
   }
 
-  printf("summary features=%" PRIu32 " deformation=%" PRIu32 " health=%" PRIu32 "\n",
-         got[kFeatures], got[kDeformation], got[kHealth]);
+  printf("summary features=%" PRIu32 " deformation=%" PRIu32 " health=%" PRIu32 " field=%" PRIu32
+         "\n",
+         got[kFeatures], got[kDeformation], got[kHealth], got[kField]);
   fflush(stdout);
   if (!done) {
     fprintf(stderr, "ros2_subscriber: %s after %.3g s:", g_stop ? "interrupted" : "timeout",
             timeout_s);
     for (int t = 0; t < kTopics; ++t) {
+      if (reader[t] == 0) continue;
       dds_subscription_matched_status_t m;
       dds_requested_incompatible_qos_status_t q;
       const bool have_m = dds_get_subscription_matched_status(reader[t], &m) == DDS_RETCODE_OK;
@@ -475,8 +578,9 @@ int main(int argc, char** argv) {
       if (have_q && q.total_count > 0)
         fprintf(stderr, ", %" PRIu32 " with incompatible QoS, last policy id %" PRIu32,
                 q.total_count, (uint32_t)q.last_policy_id);
-      fputs(t + 1 < kTopics ? ");" : ")\n", stderr);
+      fputs(")", stderr);
     }
+    fputs("\n", stderr);
   }
   dds_delete(pp);
   return done ? 0 : 1;

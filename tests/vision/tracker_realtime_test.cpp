@@ -9,6 +9,7 @@
 #include <pthread.h>
 
 #include <atomic>
+#include <iostream>
 #include <cstdlib>
 #include <new>
 
@@ -16,6 +17,7 @@
 #include "pulsetrack/record/live_recorder.hpp"
 #include "pulsetrack/sim/paper_rig.hpp"
 #include "pulsetrack/sim/scene.hpp"
+#include "pulsetrack/vision/deformation_field.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
 #include "pulsetrack/vision/tracking_session.hpp"
 #include "test_util.hpp"
@@ -160,13 +162,21 @@ TEST(TrackerRealtime, TheSessionAllocatesNothingPerPairEvenWithABadRoi) {
   for (int i = 0; i < 12; ++i)
     s.render(i, left[static_cast<size_t>(i)], right[static_cast<size_t>(i)]);
   const auto t_ns = [](int i) { return int64_t{i} * 100'000'000; };  // 10 Hz
+  DeformationField field(FieldConfig{}, TrackerConfig{}.max_features);
+  int fields = 0;
   const auto run = [&](TrackingSession& session, int from, int to) {
     g_allocations = 0;
     g_locks = 0;
     g_counting = true;
     for (int i = from; i < to; ++i) {
       const auto k = static_cast<size_t>(i);
-      (void)session.process(left[k], right[k], static_cast<uint64_t>(i), t_ns(i));
+      const PairResult& pr =
+          session.process(left[k], right[k], static_cast<uint64_t>(i), t_ns(i));
+      if (pr.state == SessionState::kTracking &&
+          field.update(pr.features, pr.detected, pr.deformation.detections)) {
+        ++fields;
+        (void)field.at(field.rest(field.points() / 2));
+      }
       session.afterPublish(left[k], right[k]);
     }
     g_counting = false;
@@ -175,13 +185,21 @@ TEST(TrackerRealtime, TheSessionAllocatesNothingPerPairEvenWithABadRoi) {
     SessionConfig c;
     c.roi = {{560, 380, 260, 220}, {540, 370, 260, 220}};
     TrackingSession session(s.rig(), c);
-    (void)session.process(left[0], right[0], 0, t_ns(0));
+    const PairResult& first = session.process(left[0], right[0], 0, t_ns(0));
     ASSERT_EQ(session.last().state, SessionState::kTracking) << session.reason();
-    (void)session.process(left[1], right[1], 1, t_ns(1));  // warm-up
+    // The dense field too: it allocates its grid at the detection, nothing per pair after.
+    ASSERT_TRUE(field.update(first.features, first.detected, first.deformation.detections));
+    const PairResult& second = session.process(left[1], right[1], 1, t_ns(1));  // warm-up
+    ASSERT_TRUE(field.update(second.features, second.detected, second.deformation.detections));
+    const int factorizations = field.factorizations();
     run(session, 2, 12);
-    EXPECT_EQ(g_allocations.load(), 0) << "allocations in 10 tracked pairs";
+    EXPECT_EQ(g_allocations.load(), 0) << "allocations in 10 tracked pairs (and their field)";
     EXPECT_EQ(g_locks.load(), 0);
     EXPECT_TRUE(session.last().deformation.valid);
+    EXPECT_EQ(fields, 10);
+    EXPECT_GT(field.points(), 400);
+    std::cout << "field: " << field.cols() << "x" << field.rows() << " grid, "
+              << field.factorizations() - factorizations << " factorizations in 10 pairs\n";
   }
   {  // an ROI outside the image: refused with its reason, every pair free
     SessionConfig c;

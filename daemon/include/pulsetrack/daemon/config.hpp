@@ -9,6 +9,7 @@
 #include "pulsetrack/drivers/source.hpp"
 #include "pulsetrack/drivers/v4l2.hpp"
 #include "pulsetrack/rt/thread_policy.hpp"
+#include "pulsetrack/vision/deformation_field.hpp"
 #include "pulsetrack/vision/error.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
 
@@ -55,6 +56,7 @@ struct DaemonConfig {
   double retry_interval_s = 1.0;    // between detections that found nothing
   double velocity_window_s = 0.25;  // the published velocity's least-squares window
   vision::TrackerConfig tracker;
+  vision::FieldConfig field;  // [field]: the dense deformation field (rt/.../field)
   bool lock_memory = true;
   double deadline_ms = 20.0;
   rt::ThreadPolicy capture{80, -1}, track{70, -1}, publish{60, -1};

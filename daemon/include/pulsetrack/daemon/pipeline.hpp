@@ -7,7 +7,8 @@
 //   track:   vision::TrackingSession (detection, retries, re-detection, the deformation), its
 //            result copied into a preallocated slot                -> results_ (drop)
 //   publish: converts each result to DDS features and deformation (stamped on the system clock)
-//            and sends them; the health sample, systemd STATUS and the watchdog ping from
+//            and sends them; then the dense deformation field (vision::DeformationField) as a
+//            sensor_msgs/PointCloud2; the health sample, systemd STATUS and the watchdog ping from
 //            health() called by the main thread, which also re-measures the system clock.
 
 #include <array>
@@ -105,7 +106,7 @@ class Pipeline {
   record::LiveRecorder* recorder_;
   uint64_t recorded_ = UINT64_MAX;  // capture thread: the trigger number of the recording's frame 0
   const dds::Participant& participant_;
-  dds::Writer features_writer_, deformation_writer_, health_writer_;
+  dds::Writer features_writer_, deformation_writer_, health_writer_, field_writer_;
   rt::LatestSlot<Frame> frames_;
   rt::LatestSlot<TrackResult> results_;
   std::atomic<uint64_t> frames_seq_{0}, results_seq_{0};  // wake-ups (futex, no lock)

@@ -27,8 +27,10 @@ inline constexpr const char* kFeaturesTopic = "rt/pulsetrack/features";
 inline constexpr const char* kDeformationTopic = "rt/pulsetrack/deformation";
 inline constexpr const char* kHealthTopic = "rt/pulsetrack/health";
 inline constexpr const char* kCommandTopic = "rt/pulsetrack/command";
+inline constexpr const char* kFieldTopic = "rt/pulsetrack/field";
 struct Topics {
   std::string features, deformation, health, command;
+  std::string field;  // the dense deformation field, sensor_msgs/PointCloud2
   // The namespace follows ROS 2's rules for names: segments of letters, digits and underscores
   // separated by '/', none starting with a digit; a leading '/' is allowed (ROS 2's absolute
   // form), a trailing one is not. Empty: no namespace.
