@@ -4,6 +4,11 @@
 #include <gtest/gtest.h>
 
 #include <filesystem>
+#include <fmt/format.h>
+#include <iostream>
+#include <map>
+#include <set>
+#include <sstream>
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
 #include <regex>
@@ -43,6 +48,97 @@ TEST(TrackCli, RecordingTrackedAndScored) {
   ASSERT_TRUE(std::regex_search(r.output, m, std::regex("3D error +RMS ([0-9.]+) mm"))) << r.output;
   EXPECT_LT(std::stod(m[1]), 0.08) << r.output;
   EXPECT_NE(r.output.find("outliers > 0.50 mm    0 "), std::string::npos) << r.output;
+
+  // The dense field and the targets: the first pair's ok features as targets (as a robot would
+  // pick points on the surface), one point far off the surface; a broken points file.
+  std::ofstream pts(dir / "points.csv");
+  pts << "x,y,z\n";
+  std::map<int, cv::Vec3d> first;
+  for (const record::TrackRow& row : *rows) {
+    if (row.frame != rows->front().frame || row.status != "ok" || first.size() >= 5) continue;
+    first[row.id] = {row.x, row.y, row.z};
+    pts << fmt::format("{:.6f},{:.6f},{:.6f}\n", row.x, row.y, row.z);
+  }
+  pts << "0,0,1450\n";
+  pts.close();
+  ASSERT_EQ(first.size(), 5U);
+  r = test::run(test::cli() + " track -q --input " + (dir / "rec") + kRois + "--out " +
+                (dir / "track2.csv") + " --field " + (dir / "field.csv") +
+                " --field-every 5 --targets " + (dir / "points.csv"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("targets           " + (dir / "track2-targets.csv") + " (6 targets"),
+            std::string::npos)
+      << r.output;
+  // The targets follow their features: each answer's displacement within 0.1 mm of the feature's
+  // own, the far point has no confidence.
+  std::ifstream tin(dir / "track2-targets.csv");
+  std::string header;
+  std::getline(tin, header);
+  EXPECT_EQ(header, "frame,t,target,x,y,z,dx,dy,dz,confidence");
+  std::map<std::pair<long, int>, cv::Vec3d> feature_at;
+  for (const record::TrackRow& row : *rows)
+    if (row.status == "ok") feature_at[{row.frame, row.id}] = {row.x, row.y, row.z};
+  std::vector<int> ids;
+  for (const auto& [id, p] : first) ids.push_back(id);
+  int compared = 0, far = 0;
+  double worst = 0, moved = 0;
+  for (std::string line; std::getline(tin, line);) {
+    std::vector<std::string> c;
+    std::stringstream ss(line);
+    for (std::string v; std::getline(ss, v, ',');) c.push_back(v);
+    ASSERT_EQ(c.size(), 10U) << line;
+    const int k = std::stoi(c[2]);
+    if (k == 5) {
+      EXPECT_EQ(std::stod(c[9]), 0.0) << line;
+      ++far;
+      continue;
+    }
+    const auto f = feature_at.find({std::stol(c[0]), ids[static_cast<size_t>(k)]});
+    if (f == feature_at.end()) continue;
+    // Its displacement against the feature's own (its track's position less its first); the
+    // absolute positions also differ by the stereo refresh's correction of the first pair.
+    const cv::Vec3d feature_d = f->second - first[ids[static_cast<size_t>(k)]];
+    worst = std::max(
+        worst, cv::norm(cv::Vec3d(std::stod(c[6]), std::stod(c[7]), std::stod(c[8])) - feature_d));
+    moved = std::max(moved, cv::norm(feature_d));
+    EXPECT_GT(std::stod(c[9]), 0.9) << line;
+    ++compared;
+  }
+  std::cout << compared << " target answers against their features' tracks: displacement within "
+            << worst << " mm of theirs, which moved up to " << moved << " mm\n";
+  EXPECT_GT(compared, 40);
+  EXPECT_GT(far, 10);
+  // A feature's own track carries its noise (3D error RMS 0.028 mm, README), the field's answer
+  // the spline's average of its neighbours.
+  EXPECT_LT(worst, 0.1);
+  EXPECT_GT(moved, 3 * worst);
+  // The field file: the grid every 5th pair, with its figures.
+  std::ifstream fin(dir / "field.csv");
+  std::getline(fin, header);
+  EXPECT_EQ(header, "frame,t,signal,row,col,x,y,z,dx,dy,dz,confidence");
+  std::set<std::string> frames;
+  long field_rows = 0, beyond = 0;
+  for (std::string line; std::getline(fin, line); ++field_rows) {
+    frames.insert(line.substr(0, line.find(',')));
+    beyond += line.ends_with(",,,,,,,0") ? 1 : 0;
+  }
+  EXPECT_GE(frames.size(), 2U);
+  EXPECT_EQ(field_rows % static_cast<long>(frames.size()), 0);
+  EXPECT_GT(field_rows / static_cast<long>(frames.size()), 300);
+  EXPECT_LT(beyond, field_rows / 2);
+  for (const char* png : {"field-map.png", "field-points.png"}) {
+    const cv::Mat img = cv::imread(dir / png);
+    EXPECT_FALSE(img.empty()) << png;
+    EXPECT_GT(img.cols, 400) << png;
+  }
+  pts.open(dir / "bad.csv");
+  pts << "1,2,3\n4,5\n";
+  pts.close();
+  r = test::run(test::cli() + " track -q --input " + (dir / "rec") + kRois + "--out " +
+                (dir / "track3.csv") + " --targets " + (dir / "bad.csv"));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("bad.csv:2: '4,5': expected x,y,z in mm"), std::string::npos)
+      << r.output;
 }
 
 TEST(TrackCli, ImageFolderAndMatch) {

@@ -9,11 +9,13 @@
 #include <filesystem>
 #include <fstream>
 #include <memory>
+#include <optional>
 #include <opencv2/imgcodecs.hpp>
 
 #include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/record/track_csv.hpp"
 #include "pulsetrack/tools/commands.hpp"
+#include "pulsetrack/tools/field_output.hpp"
 #include "pulsetrack/tools/image_pairs.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
 #include "pulsetrack/vision/tracking_session.hpp"
@@ -148,6 +150,10 @@ struct TrackArgs : CommonArgs {
   double retry_interval = vision::SessionConfig{}.retry_interval_s;
   double velocity_window = vision::SessionConfig{}.velocity_window_s;
   bool quiet = false;
+  std::string field, targets, targets_out;
+  int field_every = 10;
+  double field_spacing = vision::FieldConfig{}.spacing_mm;
+  double field_smoothing = vision::FieldConfig{}.smoothing;
 };
 
 // The deformation file: --deformation, or beside --out (track.csv -> track-deformation.csv).
@@ -202,6 +208,29 @@ int runTrack(const TrackArgs& a) {
   sc.retry_interval_s = a.retry_interval;
   sc.velocity_window_s = a.velocity_window;
   vision::TrackingSession session(rig, sc);
+  // The dense field and the targets' answers (the daemon's field, the same code).
+  std::vector<cv::Vec3d> targets;
+  if (!a.targets.empty()) {
+    auto t = readPoints(a.targets);
+    if (!t) return commandError("track", t.error().message);
+    targets = std::move(*t);
+  }
+  std::optional<FieldOutput> field_out;
+  if (!a.field.empty() || !targets.empty()) {
+    vision::FieldConfig fc;
+    fc.spacing_mm = a.field_spacing;
+    fc.smoothing = a.field_smoothing;
+    if (auto ok = vision::checkFieldConfig(fc); !ok)
+      return commandError("track", ok.error().message);
+    std::string targets_out = a.targets_out;
+    if (targets_out.empty() && !targets.empty()) {
+      const std::filesystem::path p(a.out);
+      targets_out = (p.parent_path() / (p.stem().string() + "-targets.csv")).string();
+    }
+    auto fo = FieldOutput::open(a.field, a.field_every, targets, targets_out, fc, sc.tracker.max_features);
+    if (!fo) return commandError("track", fo.error().message);
+    field_out.emplace(std::move(*fo));
+  }
   std::vector<record::TrackRow> rows;
   std::vector<record::DeformationRow> deformation;
   std::vector<double> step_us;
@@ -253,6 +282,12 @@ int runTrack(const TrackArgs& a) {
                              d.centroid[1], d.centroid[2], d.ok, d.total,
                              static_cast<int>(d.detections), d.continuous});
     }
+    if (field_out && pr.state == vision::SessionState::kTracking) {
+      if (auto ok = field_out->add(frame, t, pr.features, pr.detected, pr.deformation.detections,
+                                   pr.deformation.displacement);
+          !ok)
+        return commandError("track", ok.error().message);
+    }
     // As the daemon does once a pair's result is out: match some features' stereo again.
     session.afterPublish(left, right);
     if (!a.quiet && (i + 1) % 50 == 0) {
@@ -284,6 +319,11 @@ int runTrack(const TrackArgs& a) {
       "deformation       {} ({} pairs)\n",
       n, initial, session.tracker().okCount(), session.redetections(), pct(0.5), pct(0.99),
       step_us.empty() ? 0.0 : step_us.back(), a.out, def_path, deformation.size());
+  if (field_out) {
+    auto lines = field_out->finish();
+    if (!lines) return commandError("track", lines.error().message);
+    for (const std::string& l : *lines) fmt::print("{}\n", l);
+  }
   return 0;
 }
 
@@ -324,6 +364,24 @@ CommandRunner addTrackCommand(CLI::App& app) {
                   "The velocity's least-squares window (s); its group delay is in the file")
       ->check(CLI::Range(0.0, 10.0))
       ->capture_default_str();
+  cmd->add_option("--field", args->field,
+                  "The dense deformation field (as pulsetrackd publishes it) to this CSV: "
+                  "frame,t,signal,row,col,x,y,z,dx,dy,dz,confidence (mm), every --field-every "
+                  "pairs; figures beside it (FIELD-map.png, FIELD-points.png)");
+  cmd->add_option("--field-every", args->field_every, "Write the field every N pairs")
+      ->check(CLI::Range(1, 1000000))
+      ->capture_default_str();
+  cmd->add_option("--field-spacing", args->field_spacing, "The field's grid spacing (mm)")
+      ->capture_default_str();
+  cmd->add_option("--field-smoothing", args->field_smoothing,
+                  "The field's spline smoothing (mm^2; README: how the default was chosen)")
+      ->capture_default_str();
+  cmd->add_option("--targets", args->targets,
+                  "Points to follow (CSV x,y,z in mm, as they were in the first tracked pair): "
+                  "where each is in every pair, from the field, to --targets-out");
+  cmd->add_option("--targets-out", args->targets_out,
+                  "Where the targets' answers go (default: beside --out, NAME-targets.csv): "
+                  "frame,t,target,x,y,z,dx,dy,dz,confidence");
   cmd->add_flag("-q,--quiet", args->quiet, "No progress lines");
   return [args] { return runTrack(*args); };
 }
