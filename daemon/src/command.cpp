@@ -2,6 +2,8 @@
 
 #include <fmt/format.h>
 
+#include <cmath>
+
 #include "pulsetrack/vision/tracking_session.hpp"
 
 namespace pulsetrack::daemon {
@@ -51,6 +53,29 @@ CheckedCommand checkCommand(const pulsetrack_msgs_msg_dds__Command_& c, const st
     out.refusal = fmt::format("command {} '{}' refused: {}", c.request_id, printable(what), why);
   }
   return out;
+}
+
+std::string checkTargets(const pulsetrack_msgs_msg_dds__Targets_& t, const std::string& rig_id,
+                         size_t max_points) {
+  const std::string rig = t.rig_id != nullptr ? t.rig_id : "";
+  std::string why;
+  if (!rig.empty() && rig != rig_id)
+    why = fmt::format("addressed to rig '{}', this is '{}'", printable(rig), rig_id);
+  else if (t.set_id == 0)
+    why = "set_id 0 (a set needs a number, echoed in its answers)";
+  else if (t.frame > 1)
+    why = fmt::format("frame {} (0: reference, 1: latest)", t.frame);
+  else if (t.points._length > max_points)
+    why = fmt::format("{} points, at most {}", t.points._length, max_points);
+  else if (t.points._length > 0 && t.points._buffer == nullptr)
+    why = "no points buffer";
+  for (uint32_t i = 0; i < t.points._length && why.empty(); ++i) {
+    const geometry_msgs_msg_dds__Point_& p = t.points._buffer[i];
+    if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z) ||
+        std::abs(p.x) > 100 || std::abs(p.y) > 100 || std::abs(p.z) > 100)
+      why = fmt::format("point {} is not a finite position within 100 m", i);
+  }
+  return why.empty() ? "" : fmt::format("targets set {} refused: {}", t.set_id, why);
 }
 
 }  // namespace pulsetrack::daemon

@@ -80,6 +80,7 @@ Pipeline::Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSo
   }
   for (TrackResult& r : results_.slots())
     r.features.reserve(static_cast<size_t>(config_.tracker.max_features));
+  for (TargetSet& t : target_sets_.slots()) t.points.reserve(kMaxTargets);
 }
 
 Pipeline::~Pipeline() { stop(); }
@@ -107,6 +108,11 @@ vision::Result<std::vector<std::string>> Pipeline::start() {
                             &sensor_msgs_msg_dds__PointCloud2__desc, dds::Profile::kSensorData);
     if (!ffw) return std::unexpected(ffw.error());
     field_writer_ = std::move(*ffw);
+    auto tw = dds::Writer::create(participant_, topics.targets_tracked.c_str(),
+                                  &pulsetrack_msgs_msg_dds__TrackedTargets__desc,
+                                  dds::Profile::kSensorData);
+    if (!tw) return std::unexpected(tw.error());
+    targets_writer_ = std::move(*tw);
   }
   if (auto ok = source_->start(); !ok) return std::unexpected(ok.error());
   std::vector<std::string> warnings;
@@ -333,6 +339,22 @@ void Pipeline::publishLoop() {
     cloud.data._maximum = static_cast<uint32_t>(cloud_data.size());
     cloud.data._release = false;
   }
+  // The robot's targets: their references (mm, in the field's reference pair), the last answers.
+  std::vector<cv::Vec3d> target_refs, target_last;
+  target_refs.reserve(kMaxTargets);
+  target_last.reserve(kMaxTargets);
+  uint32_t target_set = 0, target_signal = 0;
+  bool target_answered = false;
+  std::vector<geometry_msgs_msg_dds__Point_> tt_ref(kMaxTargets), tt_pos(kMaxTargets);
+  std::vector<geometry_msgs_msg_dds__Vector3_> tt_disp(kMaxTargets);
+  std::vector<float> tt_conf(kMaxTargets);
+  pulsetrack_msgs_msg_dds__TrackedTargets_ tt{};
+  tt.header.frame_id = const_cast<char*>(kFrameId);
+  tt.rig_id = config_.rig_id.data();
+  tt.reference = {kMaxTargets, 0, tt_ref.data(), false};
+  tt.position = {kMaxTargets, 0, tt_pos.data(), false};
+  tt.displacement = {kMaxTargets, 0, tt_disp.data(), false};
+  tt.confidence = {kMaxTargets, 0, tt_conf.data(), false};
   uint64_t seen = 0;
   while (running_.load(std::memory_order_relaxed)) {
     publish_beat_.beat();
@@ -400,6 +422,40 @@ void Pipeline::publishLoop() {
       cloud.data._length = cloud.row_step * cloud.height;
       cloud.is_dense = dense;
       (void)field_writer_.write(&cloud);
+      // The robot's targets: a new set (mapped back to the reference when given as it is now),
+      // a new signal (each target goes on from where it was last), then this pair's answers.
+      if (const TargetSet* set = target_sets_.take()) {
+        target_set = set->set_id;
+        target_refs.clear();
+        for (const cv::Vec3d& p : set->points)
+          target_refs.push_back(set->frame == 1 ? field->reference(p) : p);
+        target_signal = field->signal();
+        target_answered = false;
+      }
+      if (field->signal() != target_signal) {
+        if (target_answered) target_refs.assign(target_last.begin(), target_last.end());
+        target_signal = field->signal();
+      }
+      if (target_set != 0 && !target_refs.empty()) {
+        target_last.clear();
+        for (size_t k = 0; k < target_refs.size(); ++k) {
+          const vision::FieldQuery q = field->at(target_refs[k]);
+          target_last.push_back(q.position);
+          tt_ref[k] = point(target_refs[k]);
+          tt_pos[k] = point(q.position);
+          tt_disp[k] = vec(q.displacement);
+          tt_conf[k] = static_cast<float>(q.confidence);
+        }
+        target_answered = true;
+        const auto answers = static_cast<uint32_t>(target_refs.size());
+        tt.reference._length = tt.position._length = tt.displacement._length =
+            tt.confidence._length = answers;
+        tt.header.stamp = stamp;
+        tt.frame = r->trigger_seq;
+        tt.set_id = target_set;
+        tt.signal = field->signal();
+        (void)targets_writer_.write(&tt);
+      }
     }
     consumed_.fetch_add(1);
     consumed_.notify_one();
@@ -440,11 +496,49 @@ void Pipeline::commandLoop() {
     log::get("dds").error("commands will not be received: {}", reader.error().message);
     return;
   }
+  // The robot's targets: reliable, volatile, so that any reliable writer matches (a ROS 2
+  // publisher with rclcpp's QoS(1).reliable(), or transient_local too).
+  std::optional<dds::Reader> targets;
+  if (config_.field.enabled) {
+    auto tr = dds::Reader::create(participant_, config_.topics.targets.c_str(),
+                                  &pulsetrack_msgs_msg_dds__Targets__desc, dds::Profile::kCommand);
+    if (!tr)
+      log::get("dds").error("targets will not be received: {}", tr.error().message);
+    else
+      targets.emplace(std::move(*tr));
+  }
   pulsetrack_msgs_msg_dds__Command_ c{};
+  pulsetrack_msgs_msg_dds__Targets_ t{};
+  const auto wait = std::chrono::milliseconds(targets ? 50 : 100);
   while (running_.load()) {
-    if (reader->takeOne(&c, std::chrono::milliseconds(100))) (void)command(c);
+    if (reader->takeOne(&c, wait)) (void)command(c);
+    if (targets && targets->takeOne(&t, wait)) (void)this->targets(t);
   }
   dds_sample_free(&c, &pulsetrack_msgs_msg_dds__Command__desc, DDS_FREE_CONTENTS);
+  dds_sample_free(&t, &pulsetrack_msgs_msg_dds__Targets__desc, DDS_FREE_CONTENTS);
+}
+
+std::string Pipeline::targets(const pulsetrack_msgs_msg_dds__Targets_& t) {
+  if (std::string why = checkTargets(t, config_.rig_id, kMaxTargets); !why.empty()) {
+    log::get("command").warn("{}", why);
+    command_errors_.back() = why;
+    command_errors_.publish();
+    commands_refused_.fetch_add(1);
+    return why;
+  }
+  TargetSet& set = target_sets_.back();
+  set.set_id = t.set_id;
+  set.frame = t.frame;
+  set.points.clear();
+  for (uint32_t i = 0; i < t.points._length; ++i) {
+    const geometry_msgs_msg_dds__Point_& p = t.points._buffer[i];
+    set.points.emplace_back(p.x * 1e3, p.y * 1e3, p.z * 1e3);
+  }
+  target_sets_.publish();
+  commands_accepted_.fetch_add(1);
+  log::get("command").info("targets set {}: {} points ({})", t.set_id, t.points._length,
+                           t.frame == 1 ? "as they are now" : "in the reference pair");
+  return "";
 }
 
 State Pipeline::health(const Notifier& notifier) {
@@ -588,10 +682,11 @@ State Pipeline::health(const Notifier& notifier) {
   h.clock_state = clock_state.data();
   h.security_state = const_cast<char*>(participant_.securityState().c_str());
   std::string output_state = fmt::format(
-      "readers matched: features {}, deformation {}, health {}, field {}",
+      "readers matched: features {}, deformation {}, health {}, field {}, targets_tracked {}",
       features_writer_.matchedReaders(), deformation_writer_.matchedReaders(),
       health_writer_.matchedReaders(),
-      config_.field.enabled ? std::to_string(field_writer_.matchedReaders()) : "off");
+      config_.field.enabled ? std::to_string(field_writer_.matchedReaders()) : "off",
+      config_.field.enabled ? std::to_string(targets_writer_.matchedReaders()) : "off");
   h.output_state = output_state.data();
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
   std::string err =

@@ -79,7 +79,7 @@ Result<Topics> Topics::forNamespace(std::string_view ns) {
   }
   prefix += "pulsetrack/";
   return Topics{prefix + "features", prefix + "deformation", prefix + "health", prefix + "command",
-                prefix + "field"};
+                prefix + "field", prefix + "targets", prefix + "targets_tracked"};
 }
 
 Entity& Entity::operator=(Entity&& o) noexcept {

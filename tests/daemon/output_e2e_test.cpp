@@ -7,7 +7,10 @@
 // - the research team: the same recording through the daemon (replay, no pair dropped) and
 //   through `pulsetrack track` gives the same features and the same deformation, bit for bit.
 
+#include <fmt/format.h>
 #include <gtest/gtest.h>
+
+#include <opencv2/core.hpp>
 
 #include <cmath>
 #include <csignal>
@@ -44,11 +47,12 @@ std::map<std::string, std::string> fields(const std::string& line) {
 struct Received {
   int exit_code = -1;
   std::string output;
-  std::vector<std::map<std::string, std::string>> features, deformation, health, field;
+  std::vector<std::map<std::string, std::string>> features, deformation, health, field, tracked;
 };
 
 Received subscribe(uint32_t domain, const std::string& ns, int features, int deformation,
-                   int health, int timeout_s, const std::string& command = "", int field = 0) {
+                   int health, int timeout_s, const std::string& command = "", int field = 0,
+                   const std::string& targets = "", int tracked = 0) {
   setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
   std::string cmd = std::string(ROS2_SUBSCRIBER) + " --domain " + std::to_string(domain);
   if (!ns.empty()) cmd += " --namespace " + ns;
@@ -57,6 +61,8 @@ Received subscribe(uint32_t domain, const std::string& ns, int features, int def
          std::to_string(timeout_s);
   if (!command.empty()) cmd += " --command " + command;
   if (field > 0) cmd += " --field " + std::to_string(field);
+  if (!targets.empty()) cmd += " " + targets;
+  if (tracked > 0) cmd += " --tracked " + std::to_string(tracked);
   const test::CommandResult r = test::run(cmd);
   Received got;
   got.exit_code = r.exit_code;
@@ -68,6 +74,7 @@ Received subscribe(uint32_t domain, const std::string& ns, int features, int def
     if (line.rfind("deformation ", 0) == 0) got.deformation.push_back(fields(line));
     if (line.rfind("health ", 0) == 0) got.health.push_back(fields(line));
     if (line.rfind("field ", 0) == 0) got.field.push_back(fields(line));
+    if (line.rfind("tracked ", 0) == 0) got.tracked.push_back(fields(line));
   }
   return got;
 }
@@ -172,7 +179,7 @@ TEST(Ros2Output, ANodeBuiltFromTheMsgFilesReceivesANamespacedRigAndNothingOfAnot
 // and datatype (ros2_subscriber shares no code with the daemon). Its content against the
 // deformation sample of the same pair: the grid's mean displacement is the surface's, within
 // 0.1 mm of the features' mean, while the surface moves more than that.
-TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesByItsDeclaredOffsets) {
+TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesAndTargetsAreFollowed) {
   test::TempDir dir;
   const uint32_t domain = 88;
   DaemonOptions o;
@@ -184,6 +191,22 @@ TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesByItsDeclaredOffsets) {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   };
   const Received r = subscribe(domain, "or3", 0, 40, 0, 90, "", 25);
+  // The robot's question, as a ROS 2 node asks it (Targets.msg, TrackedTargets.msg): the grid's
+  // middle point in the reference pair (its position less its displacement, from the last
+  // cloud) and a point off the surface; then the middle point as it is now (FRAME_LATEST).
+  ASSERT_FALSE(r.field.empty()) << r.output;
+  const auto& last = r.field.back();
+  const cv::Vec3d now(std::stod(last.at("mx")), std::stod(last.at("my")), std::stod(last.at("mz")));
+  const cv::Vec3d ref = now - cv::Vec3d(std::stod(last.at("mdx")), std::stod(last.at("mdy")),
+                                        std::stod(last.at("mdz")));
+  const auto triple = [](const cv::Vec3d& p) {
+    return fmt::format("{:.9f},{:.9f},{:.9f}", p[0], p[1], p[2]);
+  };
+  const Received by_ref = subscribe(domain, "or3", 0, 30, 0, 90, "", 0,
+                                    "--targets '" + triple(ref) + ";0,0,1.45'", 15);
+  const Received by_now = subscribe(domain, "or3", 0, 0, 0, 90, "", 0,
+                                    "--targets '" + triple(now) + "' --targets-frame latest --set-id 43",
+                                    5);
   kill(d.pid, SIGTERM);
   EXPECT_EQ(d.wait(secs), 0);
   ASSERT_EQ(r.exit_code, 0) << r.output;
@@ -231,6 +254,58 @@ TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesByItsDeclaredOffsets) {
   EXPECT_LT(worst, 1e-4);
   EXPECT_GT(moved, 2 * worst);
   EXPECT_GT(moved, 0.05e-3);
+
+  // FRAME_REFERENCE: the references echo what was sent, position = reference + displacement,
+  // the middle point moves with the surface (within 0.1 mm of the features' mean), the far
+  // point has no confidence and stays where it was.
+  ASSERT_EQ(by_ref.exit_code, 0) << by_ref.output;
+  ASSERT_GE(by_ref.tracked.size(), 15U);
+  deformation_at.clear();
+  for (const auto& def : by_ref.deformation)
+    deformation_at[def.at("sec") + "." + def.at("nanosec")] = &def;
+  const auto v3 = [](const std::map<std::string, std::string>& m, const std::string& k) {
+    return cv::Vec3d(std::stod(m.at(k + "x")), std::stod(m.at(k + "y")), std::stod(m.at(k + "z")));
+  };
+  int with_deformation = 0;
+  double target_worst = 0, target_moved = 0;
+  for (const auto& t : by_ref.tracked) {
+    EXPECT_EQ(t.at("set_id"), "42");
+    EXPECT_EQ(t.at("rig"), "rig-f");
+    EXPECT_EQ(t.at("n"), "2");
+    EXPECT_EQ(t.at("n_confidence"), "2");
+    EXPECT_LT(cv::norm(v3(t, "r0") - ref), 1e-8) << "the reference echoes what was sent";
+    EXPECT_LT(cv::norm(v3(t, "p0") - (v3(t, "r0") + v3(t, "d0"))), 1e-9);
+    EXPECT_GT(std::stod(t.at("c0")), 0.9);
+    EXPECT_EQ(std::stod(t.at("c1")), 0.0);
+    EXPECT_LT(cv::norm(v3(t, "p1") - cv::Vec3d(0, 0, 1.45)), 1e-9);
+    const auto def = deformation_at.find(t.at("sec") + "." + t.at("nanosec"));
+    if (def == deformation_at.end()) continue;
+    ++with_deformation;
+    target_worst = std::max(target_worst, cv::norm(v3(t, "d0") - v3(*def->second, "d")));
+    target_moved = std::max(target_moved, cv::norm(v3(*def->second, "d")));
+  }
+  std::cout << by_ref.tracked.size() << " answers to the targets, " << with_deformation
+            << " matched to their pair's deformation: the middle point's displacement within "
+            << target_worst * 1e3 << " mm of the features' mean, which moved up to "
+            << target_moved * 1e3 << " mm\n";
+  EXPECT_GE(with_deformation, 5);
+  EXPECT_LT(target_worst, 1e-4);
+  EXPECT_GT(target_moved, 2 * target_worst);
+  // FRAME_LATEST: mapped back through the field of the pair it arrived at, so that this pair's
+  // answer puts it exactly where it was given.
+  // (Answers to the last set, 42, come until the daemon takes the new one, 43.)
+  ASSERT_EQ(by_now.exit_code, 0) << by_now.output;
+  std::vector<std::map<std::string, std::string>> latest;
+  for (const auto& t : by_now.tracked)
+    if (t.at("set_id") == "43") latest.push_back(t);
+  ASSERT_GE(latest.size(), 2U) << by_now.output;
+  const auto first_answer =
+      std::min_element(latest.begin(), latest.end(), [](const auto& a, const auto& b) {
+        return std::stoull(a.at("frame")) < std::stoull(b.at("frame"));
+      });
+  EXPECT_LT(cv::norm(v3(*first_answer, "p0") - now), 1e-8) << by_now.output;
+  for (const auto& t : latest)
+    EXPECT_LT(cv::norm(v3(t, "r0") - v3(*first_answer, "r0")), 1e-12) << by_now.output;
 }
 
 // Every pair of a recording through pulsetrackd (replay, lossless: none dropped) and through

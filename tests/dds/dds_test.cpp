@@ -60,7 +60,7 @@ TEST(Dds, TheIdlIsKeylessAndFinal) {
     ++structs;
     finals += at >= 7 && idl.compare(at - 7, 7, "@final ") == 0 ? 1 : 0;
   }
-  EXPECT_EQ(structs, 12U);
+  EXPECT_EQ(structs, 14U);
   EXPECT_EQ(finals, structs);
   std::string code;  // the IDL without its comments
   std::istringstream lines(idl);
@@ -110,7 +110,8 @@ TEST(Dds, Ros2MessagesMatchTheIdl) {
   const std::string idl((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
   ASSERT_FALSE(idl.empty());
   for (const char* t :
-       {"Feature", "Features", "Deformation", "StageLatency", "Health", "Command"}) {
+       {"Feature", "Features", "Deformation", "StageLatency", "Health", "Command", "Targets",
+        "TrackedTargets"}) {
     const auto a = idlFields(idl, t);
     const auto b = msgFields(std::string(PULSETRACK_SOURCE_DIR) + "/msgs/ros/pulsetrack_msgs/msg/" +
                              t + ".msg");

@@ -33,7 +33,11 @@
 //            fields="name:offset:datatype:count,..." points valid(=finite x y z) mean_dx mean_dy
 //            mean_dz (over the valid points, m) mean_confidence min_z max_z, the middle grid
 //            point's mx my mz mdx mdy mdz mconf, missing="names not found" frame_id
-// then "summary features=N deformation=N health=N field=N". Exit 0: every requested count reached;
+//   tracked sec nanosec frame set_id signal n, per target k: rkx rky rkz pkx pky pkz dkx dky dkz ck
+// --targets "x,y,z;x,y,z" (m) [--targets-frame reference|latest]: publishes one
+// pulsetrack_msgs/Targets set (set_id 42, or --set-id N) first, as a ROS 2 node with
+// rclcpp::QoS(1).reliable().transient_local(); --tracked N: TrackedTargets samples to wait for.
+// then "summary features=N deformation=N health=N field=N tracked=N". Exit 0: every requested count reached;
 // 1: timeout (or interrupted) first, with what matched on stderr; 2: bad usage or a DDS error
 // (named on stderr).
 #define _POSIX_C_SOURCE 200809L
@@ -52,9 +56,10 @@
 
 #include "ros2_types.h"
 
-enum { kFeatures, kDeformation, kHealth, kField, kTopics };
+enum { kFeatures, kDeformation, kHealth, kField, kTracked, kTopics };
 
-static const char* const kLeaf[kTopics] = {"features", "deformation", "health", "field"};
+static const char* const kLeaf[kTopics] = {"features", "deformation", "health", "field",
+                                           "targets_tracked"};
 
 static volatile sig_atomic_t g_stop = 0;
 
@@ -68,6 +73,8 @@ static void usage(FILE* out) {
           "usage: ros2_subscriber --domain N [--namespace NS] [--features N] [--deformation N]\n"
           "       [--command start|stop|redetect|set_roi] (publishes one Command first)\n"
           "                       [--health N] [--field N] [--timeout S]\n"
+          "       [--targets \"x,y,z;...\" [--targets-frame reference|latest] [--set-id N]]\n"
+          "       [--tracked N]\n"
           "Subscribes to rt/[NS/]pulsetrack/{features,deformation,health} as a ROS 2 node over\n"
           "rmw_cyclonedds_cpp would (types from the .msg files, ROS 2 QoS, XCDR1, keyless) and\n"
           "prints one line per sample. --features/--deformation/--health: samples to wait for\n"
@@ -285,6 +292,67 @@ static bool readChannel(const sensor_msgs_msg_dds__PointCloud2_* m, const char* 
   return false;
 }
 
+static void printTracked(const pulsetrack_msgs_msg_dds__TrackedTargets_* m) {
+  printf("tracked frame=%" PRIu64, m->frame);
+  printStamp(&m->header);
+  fputs(" rig=", stdout);
+  putToken(m->rig_id);
+  printf(" set_id=%" PRIu32 " signal=%" PRIu32 " n=%" PRIu32 " n_position=%" PRIu32
+         " n_displacement=%" PRIu32 " n_confidence=%" PRIu32,
+         m->set_id, m->signal, m->reference._length, m->position._length,
+         m->displacement._length, m->confidence._length);
+  for (uint32_t k = 0; k < m->reference._length && k < m->position._length &&
+                       k < m->displacement._length && k < m->confidence._length;
+       ++k) {
+    const geometry_msgs_msg_dds__Point_* r = &m->reference._buffer[k];
+    const geometry_msgs_msg_dds__Point_* p = &m->position._buffer[k];
+    const geometry_msgs_msg_dds__Vector3_* d = &m->displacement._buffer[k];
+    printf(" r%" PRIu32 "x=%.17g r%" PRIu32 "y=%.17g r%" PRIu32 "z=%.17g", k, r->x, k, r->y, k,
+           r->z);
+    printf(" p%" PRIu32 "x=%.17g p%" PRIu32 "y=%.17g p%" PRIu32 "z=%.17g", k, p->x, k, p->y, k,
+           p->z);
+    printf(" d%" PRIu32 "x=%.17g d%" PRIu32 "y=%.17g d%" PRIu32 "z=%.17g", k, d->x, k, d->y, k,
+           d->z);
+    printf(" c%" PRIu32 "=%.9g", k, (double)m->confidence._buffer[k]);
+  }
+  fputs(" frame_id=", stdout);
+  putToken(m->header.frame_id);
+  putchar('\n');
+}
+
+// "x,y,z;x,y,z" (m) into points; false on a malformed list.
+static bool parsePoints(const char* s, geometry_msgs_msg_dds__Point_* out, uint32_t max,
+                        uint32_t* n) {
+  *n = 0;
+  const char* p = s;
+  while (*p != '\0') {
+    if (*n >= max) return false;
+    double v[3];
+    for (int i = 0; i < 3; ++i) {
+      char* end = NULL;
+      errno = 0;
+      v[i] = strtod(p, &end);
+      if (end == p || errno != 0 || !isfinite(v[i])) return false;
+      p = end;
+      if (i < 2) {
+        if (*p != ',') return false;
+        ++p;
+      }
+    }
+    out[*n].x = v[0];
+    out[*n].y = v[1];
+    out[*n].z = v[2];
+    ++*n;
+    if (*p == ';') {
+      ++p;
+      if (*p == '\0') return false;
+    } else if (*p != '\0') {
+      return false;
+    }
+  }
+  return *n > 0;
+}
+
 static void printField(const sensor_msgs_msg_dds__PointCloud2_* m) {
   fputs("field", stdout);
   printStamp(&m->header);
@@ -373,7 +441,10 @@ static int fail(const char* what, const char* topic, dds_return_t rc) {
 int main(int argc, char** argv) {
   uint32_t domain = UINT32_MAX;
   const char* ns = "";
-  uint32_t want[kTopics] = {1, 1, 1, 0};
+  uint32_t want[kTopics] = {1, 1, 1, 0, 0};
+  const char* targets_text = NULL;  // --targets: publish one Targets set first
+  uint8_t targets_frame = 0;
+  uint32_t set_id = 42;
   double timeout_s = 30.0;
   const char* command = NULL;  // --command: publish one Command as a ROS 2 node would
   for (int i = 1; i < argc; ++i) {
@@ -396,6 +467,16 @@ int main(int argc, char** argv) {
       ok = ok && parseU32(v, 1000000000u, &want[kHealth]);
     else if (strcmp(a, "--field") == 0)
       ok = ok && parseU32(v, 1000000000u, &want[kField]);
+    else if (strcmp(a, "--tracked") == 0)
+      ok = ok && parseU32(v, 1000000000u, &want[kTracked]);
+    else if (strcmp(a, "--targets") == 0)
+      targets_text = v;
+    else if (strcmp(a, "--set-id") == 0)
+      ok = ok && parseU32(v, 0xffffffffu, &set_id);
+    else if (strcmp(a, "--targets-frame") == 0) {
+      ok = ok && (strcmp(v, "reference") == 0 || strcmp(v, "latest") == 0);
+      if (ok) targets_frame = strcmp(v, "latest") == 0 ? 1 : 0;
+    }
     else if (strcmp(a, "--timeout") == 0)
       ok = ok && parseSeconds(v, &timeout_s);
     else if (strcmp(a, "--command") == 0)
@@ -410,7 +491,9 @@ int main(int argc, char** argv) {
               strcmp(a, "--domain") == 0      ? "a domain id 0-232"
               : strcmp(a, "--timeout") == 0   ? "a number of seconds > 0"
               : strcmp(a, "--namespace") == 0 ? "a namespace"
-                                              : "a count >= 0",
+              : strcmp(a, "--targets-frame") == 0 ? "reference or latest"
+              : strcmp(a, "--targets") == 0       ? "x,y,z;x,y,z (m)"
+                                                  : "a count >= 0",
               v ? v : "(nothing)");
       return 2;
     }
@@ -455,7 +538,8 @@ int main(int argc, char** argv) {
   const dds_topic_descriptor_t* desc[kTopics] = {&pulsetrack_msgs_msg_dds__Features__desc,
                                                  &pulsetrack_msgs_msg_dds__Deformation__desc,
                                                  &pulsetrack_msgs_msg_dds__Health__desc,
-                                                 &sensor_msgs_msg_dds__PointCloud2__desc};
+                                                 &sensor_msgs_msg_dds__PointCloud2__desc,
+                                                 &pulsetrack_msgs_msg_dds__TrackedTargets__desc};
   // features, deformation: rclcpp::SensorDataQoS() = rmw_qos_profile_sensor_data (best effort,
   // keep last 5, volatile). health: rmw_qos_profile_default made keep last 1 and transient
   // local, i.e. rclcpp::QoS(1).reliable().transient_local(): what a ROS 2 node that wants the
@@ -467,7 +551,8 @@ int main(int argc, char** argv) {
   if (ws < 0) return fail("cannot create a waitset", NULL, ws);
   for (int t = 0; t < kTopics; ++t) {
     reader[t] = 0;
-    if (t == kField && want[kField] == 0) continue;  // only when asked (a role may not read it)
+    // field and targets_tracked only when asked (a role may not read them)
+    if ((t == kField || t == kTracked) && want[t] == 0) continue;
     const dds_entity_t tp = dds_create_topic(pp, desc[t], topic[t], NULL, NULL);
     if (tp < 0) return fail("cannot create the topic", topic[t], tp);
     dds_qos_t* qos = t == kHealth ? ros2Qos(1, true, true) : ros2Qos(5, false, false);
@@ -521,7 +606,64 @@ int main(int argc, char** argv) {
     fflush(stdout);
   }
 
-  uint32_t got[kTopics] = {0, 0, 0, 0};
+  // --targets: one Targets set, as a ROS 2 node publishes a setting it wants kept:
+  // rclcpp::QoS(1).reliable().transient_local(), after the daemon's reader matched.
+  if (targets_text != NULL) {
+    char ttopic[256];
+    snprintf(ttopic, sizeof ttopic, "rt/%s%spulsetrack/targets", ns, ns[0] ? "/" : "");
+    static geometry_msgs_msg_dds__Point_ points[300];
+    uint32_t n = 0;
+    if (!parsePoints(targets_text, points, 300, &n)) {
+      fprintf(stderr, "ros2_subscriber: --targets '%s': expected x,y,z;x,y,z (m)\n", targets_text);
+      return 2;
+    }
+    const dds_entity_t tp =
+        dds_create_topic(pp, &pulsetrack_msgs_msg_dds__Targets__desc, ttopic, NULL, NULL);
+    if (tp < 0) return fail("cannot create the topic", ttopic, tp);
+    dds_qos_t* qos = ros2Qos(1, true, true);
+    const dds_entity_t w = dds_create_writer(pp, tp, qos, NULL);
+    dds_delete_qos(qos);
+    if (w < 0) return fail("cannot create a writer on", ttopic, w);
+    dds_publication_matched_status_t m;
+    memset(&m, 0, sizeof m);
+    const int64_t until = monotonicNs() + (int64_t)(timeout_s * 1e9);
+    while (!g_stop && monotonicNs() < until &&
+           (dds_get_publication_matched_status(w, &m) != DDS_RETCODE_OK || m.current_count == 0))
+      dds_sleepfor(DDS_MSECS(10));
+    if (m.current_count == 0) {
+      fprintf(stderr, "ros2_subscriber: no reader matched on %s\n", ttopic);
+      return 1;
+    }
+    // The answers' reader first matched to the daemon's writer (best effort: a writer sends
+    // only to readers it knows), so that the first answer is not missed.
+    if (reader[kTracked] > 0) {
+      dds_subscription_matched_status_t sm;
+      memset(&sm, 0, sizeof sm);
+      while (!g_stop && monotonicNs() < until &&
+             (dds_get_subscription_matched_status(reader[kTracked], &sm) != DDS_RETCODE_OK ||
+              sm.current_count == 0))
+        dds_sleepfor(DDS_MSECS(10));
+      dds_sleepfor(DDS_MSECS(200));  // and the daemon's side of the match
+    }
+    pulsetrack_msgs_msg_dds__Targets_ tg;
+    memset(&tg, 0, sizeof tg);
+    tg.header.frame_id = (char*)"pulsetrack_left_camera";
+    tg.rig_id = (char*)"";
+    tg.set_id = set_id;
+    tg.frame = targets_frame;
+    tg.points._buffer = points;
+    tg.points._length = tg.points._maximum = n;
+    tg.points._release = false;
+    const dds_return_t rc = dds_write(w, &tg);
+    if (rc != DDS_RETCODE_OK) return fail("cannot write on", ttopic, rc);
+    if (dds_wait_for_acks(w, DDS_SECS(5)) != DDS_RETCODE_OK)
+      fprintf(stderr, "ros2_subscriber: the targets on %s were not acknowledged\n", ttopic);
+    printf("targets sent set_id=%" PRIu32 " n=%" PRIu32 " frame=%u topic=%s\n", set_id, n,
+           (unsigned)targets_frame, ttopic);
+    fflush(stdout);
+  }
+
+  uint32_t got[kTopics] = {0, 0, 0, 0, 0};
   const int64_t deadline = monotonicNs() + (int64_t)(timeout_s * 1e9);
   bool done = false;
   while (!g_stop) {
@@ -540,8 +682,10 @@ int main(int argc, char** argv) {
             printDeformation(buf[i]);
           else if (t == kHealth)
             printHealth(buf[i]);
-          else
+          else if (t == kField)
             printField(buf[i]);
+          else
+            printTracked(buf[i]);
           fflush(stdout);
           ++got[t];
         }
@@ -550,7 +694,8 @@ int main(int argc, char** argv) {
       }
     }
     done = got[kFeatures] >= want[kFeatures] && got[kDeformation] >= want[kDeformation] &&
-           got[kHealth] >= want[kHealth] && got[kField] >= want[kField];
+           got[kHealth] >= want[kHealth] && got[kField] >= want[kField] &&
+           got[kTracked] >= want[kTracked];
     if (done) break;
     const int64_t left = deadline - monotonicNs();
     if (left <= 0) break;
@@ -560,8 +705,8 @@ int main(int argc, char** argv) {
   }
 
   printf("summary features=%" PRIu32 " deformation=%" PRIu32 " health=%" PRIu32 " field=%" PRIu32
-         "\n",
-         got[kFeatures], got[kDeformation], got[kHealth], got[kField]);
+         " tracked=%" PRIu32 "\n",
+         got[kFeatures], got[kDeformation], got[kHealth], got[kField], got[kTracked]);
   fflush(stdout);
   if (!done) {
     fprintf(stderr, "ros2_subscriber: %s after %.3g s:", g_stop ? "interrupted" : "timeout",

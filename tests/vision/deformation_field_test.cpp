@@ -73,7 +73,7 @@ struct Case {
 // Held-out material points over the disc (not features), their errors at time t.
 struct Errors {
   double rms = 0, max = 0;
-  int n = 0;
+  int n = 0, beyond = 0;  // scored; beyond the features' reach (confidence 0: no answer)
 };
 Errors heldOut(const DeformationField& field, const Case& c, double t, double radius) {
   Errors e;
@@ -83,6 +83,10 @@ Errors heldOut(const DeformationField& field, const Case& c, double t, double ra
       if (u * u + v * v > radius * radius) continue;
       const cv::Vec3d p0 = c.surface.rest(u, v);
       const FieldQuery q = field.at(p0);
+      if (q.confidence <= 0.0) {
+        ++e.beyond;
+        continue;
+      }
       const cv::Vec3d truth = p0 + c.surface.displacement(u, v, t, c.affine_only);
       const double err = cv::norm(q.position - truth);
       s2 += err * err;
@@ -196,7 +200,10 @@ TEST(DeformationField, HiddenFeaturesAndARedetectionLeaveNoJump) {
   EXPECT_EQ(field.used(), 80 - static_cast<int>(std::count_if(c.uv.begin(), c.uv.end(), [](auto& p) {
                             return p[0] < 0;
                           })));
-  EXPECT_LT(heldOut(field, c, 1.05, 19.0).rms, 0.05);  // the hidden half extrapolated
+  const Errors hidden = heldOut(field, c, 1.05, 19.0);
+  EXPECT_LT(hidden.rms, 0.05);  // the hidden half extrapolated, as far as it reaches
+  EXPECT_GT(hidden.beyond, 10);  // the far side of the hidden half: no answer
+  EXPECT_GT(hidden.n, hidden.beyond);    // the visible half and the hidden edge near it
   // Confidence: high among the visible, low on the hidden side's far edge.
   EXPECT_GT(field.at(c.surface.rest(12, 0)).confidence, 0.9);
   EXPECT_LT(field.at(c.surface.rest(-19, 0)).confidence, 0.5);
@@ -263,6 +270,8 @@ TEST(DeformationField, TheGridIsTheReferenceSurfaceAndAgreesWithTheQuery) {
     EXPECT_LT(cv::norm(c.surface.rest(u, v) - p), 0.06) << "grid point " << k;
     const FieldQuery q = field.at(p);
     EXPECT_LT(cv::norm(q.displacement - field.displacement(k)), 1e-9);
+    // A point given where it is now maps back to where it was.
+    EXPECT_LT(cv::norm(field.reference(q.position) - p), 1e-7);
     ++checked;
   }
   EXPECT_GT(checked, 200);

@@ -384,6 +384,13 @@ bool DeformationField::update(std::span<const Feature> features, bool detected,
   return true;
 }
 
+cv::Vec3d DeformationField::reference(const cv::Vec3d& now_mm) const noexcept {
+  if (!valid_) return now_mm;
+  cv::Vec3d ref = now_mm;
+  for (int it = 0; it < 6; ++it) ref = now_mm - evaluate(plane(ref));
+  return ref;
+}
+
 FieldQuery DeformationField::at(const cv::Vec3d& reference_mm) const noexcept {
   FieldQuery q;
   q.position = reference_mm;
@@ -399,6 +406,10 @@ FieldQuery DeformationField::at(const cv::Vec3d& reference_mm) const noexcept {
   }
   const double u = std::sqrt(best) / typical_;
   q.confidence = std::clamp(1.0 - (u - 1.0) / (config_.reach - 1.0), 0.0, 1.0);
+  if (q.confidence <= 0.0) {  // beyond the features' reach: no answer, the point stays
+    q.displacement = cv::Vec3d(0, 0, 0);
+    q.position = reference_mm;
+  }
   return q;
 }
 

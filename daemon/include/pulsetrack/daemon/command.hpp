@@ -27,4 +27,10 @@ struct CheckedCommand {
                                           const std::string& ros_namespace,
                                           const vision::StereoRig& rig);
 
+// A Targets sample (rt/.../targets), every field a remote participant controls: "" when it can
+// be followed (for this rig or any, a set number, frame 0 or 1, at most `max_points` finite
+// points within 100 m), else "targets set <id> refused: <why>".
+[[nodiscard]] std::string checkTargets(const pulsetrack_msgs_msg_dds__Targets_& t,
+                                       const std::string& rig_id, size_t max_points);
+
 }  // namespace pulsetrack::daemon

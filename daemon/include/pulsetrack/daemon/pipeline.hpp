@@ -53,6 +53,14 @@ struct TrackingText {
   vision::SessionState state = vision::SessionState::kNoFeatures;
 };
 
+// A robot's Targets set, handed from the command thread to the publish stage.
+inline constexpr size_t kMaxTargets = 256;
+struct TargetSet {
+  uint32_t set_id = 0;
+  uint8_t frame = 0;                // Targets.msg FRAME_REFERENCE 0, FRAME_LATEST 1
+  std::vector<cv::Vec3d> points;    // mm, capacity kMaxTargets reserved at start
+};
+
 // A recording's folder name: RIG-YYYYmmdd-HHMMSS (UTC).
 std::string recordingName(const std::string& rig_id);
 
@@ -90,6 +98,9 @@ class Pipeline {
   // Called from the command thread; hands over to the track stage without a lock.
   // Returns "" when accepted, else the reason.
   std::string command(const pulsetrack_msgs_msg_dds__Command_& c);
+  // A robot's Targets set (rt/.../targets): checked here, followed by the publish stage from the
+  // next pair (answers on rt/.../targets_tracked). Counted with the commands; "" or the reason.
+  std::string targets(const pulsetrack_msgs_msg_dds__Targets_& t);
   [[nodiscard]] uint64_t commandsRefused() const { return commands_refused_.load(); }
   [[nodiscard]] uint64_t commandsAccepted() const { return commands_accepted_.load(); }
   // Times the source went away (a fault, or no pair for 1 s or three trigger periods).
@@ -106,7 +117,9 @@ class Pipeline {
   record::LiveRecorder* recorder_;
   uint64_t recorded_ = UINT64_MAX;  // capture thread: the trigger number of the recording's frame 0
   const dds::Participant& participant_;
-  dds::Writer features_writer_, deformation_writer_, health_writer_, field_writer_;
+  dds::Writer features_writer_, deformation_writer_, health_writer_, field_writer_,
+      targets_writer_;
+  rt::LatestSlot<TargetSet> target_sets_;  // command thread -> publish stage
   rt::LatestSlot<Frame> frames_;
   rt::LatestSlot<TrackResult> results_;
   std::atomic<uint64_t> frames_seq_{0}, results_seq_{0};  // wake-ups (futex, no lock)

@@ -84,8 +84,12 @@ class DeformationField {
   [[nodiscard]] double confidence(int k) const noexcept { return conf_[k]; }
 
   // Where the material point that was at `reference_mm` (in the reference pair, {C}) is now.
-  // O(features); no allocation. Invalid field: confidence 0, the point where it was.
+  // O(features); no allocation. Invalid field, or a point beyond the features' reach
+  // (confidence 0): no displacement, the point where it was.
   [[nodiscard]] FieldQuery at(const cv::Vec3d& reference_mm) const noexcept;
+  // The inverse: the reference position of the material point that is at `now_mm` in this pair
+  // (a fixed-point iteration, exact to ~1e-9 mm for sub-mm motions). Invalid field: `now_mm`.
+  [[nodiscard]] cv::Vec3d reference(const cv::Vec3d& now_mm) const noexcept;
 
   // The surface frame: origin, e1, e2, normal ({C}).
   [[nodiscard]] const cv::Vec3d& origin() const noexcept { return origin_; }
