@@ -233,6 +233,23 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     if (auto ok = vision::checkFieldConfig(f); !ok && error.empty())
       error = fmt::format("{}: {}", file, ok.error().message);
   }
+  if (const toml::table* t = r.table("prediction")) {
+    TableReader s(*t, file, "prediction", &error);
+    vision::PredictionConfig& p = c.prediction;
+    p.enabled = s.boolean("enabled", p.enabled);
+    std::vector<double> ms;
+    for (double h : p.horizons_s) ms.push_back(h * 1e3);
+    ms = s.numbers("horizons_ms", ms, 1, vision::kMaxHorizons, 1.0, 2000.0);
+    p.horizons_s.clear();
+    for (double h : ms) p.horizons_s.push_back(h * 1e-3);
+    p.step_s = s.number("step_ms", p.step_s * 1e3, 5.0, 500.0) * 1e-3;
+    p.order = s.integer("order", p.order, 2, vision::kMaxOrder);
+    p.memory_s = s.number("memory_s", p.memory_s, 1.0, 3600.0);
+    p.error_memory_s = s.number("error_memory_s", p.error_memory_s, 0.5, 600.0);
+    s.finish();
+    if (auto ok = vision::checkPredictionConfig(p); !ok && error.empty())
+      error = fmt::format("{}: {}", file, ok.error().message);
+  }
   if (const toml::table* t = r.table("realtime")) {
     TableReader s(*t, file, "realtime", &error);
     c.lock_memory = s.boolean("lock_memory", c.lock_memory);

@@ -33,8 +33,9 @@ const char* toString(State s) {
 namespace {
 
 constexpr const char* kFrameId = "pulsetrack_left_camera";
+// The field's cloud: 7 channels, then 3 per prediction horizon (dx_<ms>ms, dy_.., dz_..).
 constexpr size_t kCloudFloats = 7;
-constexpr uint32_t kCloudStep = kCloudFloats * sizeof(float);
+constexpr size_t kCloudMaxFloats = kCloudFloats + 3 * vision::kMaxHorizons;
 constexpr std::array<const char*, kCloudFloats> kCloudFieldNames = {"x",  "y",  "z",         "dx",
                                                                     "dy", "dz", "confidence"};
 
@@ -226,6 +227,7 @@ void Pipeline::trackLoop() {
   sc.depth_tolerance_mm = config_.depth_tolerance_mm;
   sc.retry_interval_s = config_.retry_interval_s;
   sc.velocity_window_s = config_.velocity_window_s;
+  sc.prediction = config_.prediction;
   vision::TrackingSession session(source_->rig(), sc);
   uint64_t seen = 0, reason_seen = UINT64_MAX;
   bool stopped = false;
@@ -314,27 +316,52 @@ void Pipeline::publishLoop() {
   pulsetrack_msgs_msg_dds__Deformation_ d{};
   d.header.frame_id = const_cast<char*>(kFrameId);
   d.rig_id = config_.rig_id.data();
+  std::array<double, vision::kMaxHorizons> p_horizon{}, p_sigma{};
+  std::array<geometry_msgs_msg_dds__Vector3_, vision::kMaxHorizons> p_disp{};
+  std::array<bool, vision::kMaxHorizons> p_model{};
+  d.prediction_horizon = {vision::kMaxHorizons, 0, p_horizon.data(), false};
+  d.predicted_displacement = {vision::kMaxHorizons, 0, p_disp.data(), false};
+  d.prediction_sigma = {vision::kMaxHorizons, 0, p_sigma.data(), false};
+  d.predicted_by_model = {vision::kMaxHorizons, 0, p_model.data(), false};
   // The field's cloud: x y z (where each grid point is now), dx dy dz (since the signal's first
   // pair), m, and confidence; float32 little-endian, organized as the grid (rows x cols).
   std::unique_ptr<vision::DeformationField> field;
   std::vector<uint8_t> cloud_data;
-  std::array<sensor_msgs_msg_dds__PointField_, kCloudFloats> cloud_fields{};
+  std::array<sensor_msgs_msg_dds__PointField_, kCloudMaxFloats> cloud_fields{};
+  std::vector<std::string> cloud_names;  // the fields' names (their storage)
+  std::array<Eigen::MatrixXd, vision::kMaxHorizons> predicted_grid;
+  const int horizons = config_.prediction.enabled
+                           ? static_cast<int>(std::min<size_t>(config_.prediction.horizons_s.size(),
+                                                               vision::kMaxHorizons))
+                           : 0;
+  const size_t floats = kCloudFloats + 3 * static_cast<size_t>(horizons);
+  const auto cloud_step = static_cast<uint32_t>(floats * sizeof(float));
   sensor_msgs_msg_dds__PointCloud2_ cloud{};
   if (config_.field.enabled) {
     field = std::make_unique<vision::DeformationField>(config_.field, config_.tracker.max_features);
-    cloud_data.assign(static_cast<size_t>(config_.field.max_grid_points) * kCloudStep, 0);
-    for (size_t i = 0; i < cloud_fields.size(); ++i) {
-      cloud_fields[i].name = const_cast<char*>(kCloudFieldNames[i]);
+    if (horizons > 0) {
+      field->enablePrediction(
+          config_.prediction.order * config_.prediction.step_s + 0.1,
+          std::max(config_.prediction.max_rate_hz, 2.0 * config_.fps));
+    }
+    cloud_data.assign(static_cast<size_t>(config_.field.max_grid_points) * cloud_step, 0);
+    for (const char* n : kCloudFieldNames) cloud_names.emplace_back(n);
+    for (int k = 0; k < horizons; ++k) {
+      const long ms = std::lround(config_.prediction.horizons_s[static_cast<size_t>(k)] * 1e3);
+      for (const char* axis : {"dx", "dy", "dz"}) cloud_names.push_back(fmt::format("{}_{}ms", axis, ms));
+    }
+    for (size_t i = 0; i < floats; ++i) {
+      cloud_fields[i].name = cloud_names[i].data();
       cloud_fields[i].offset = static_cast<uint32_t>(i * sizeof(float));
       cloud_fields[i].datatype = 7;  // sensor_msgs/PointField FLOAT32
       cloud_fields[i].count = 1;
     }
     cloud.header.frame_id = const_cast<char*>(kFrameId);
     cloud.fields._buffer = cloud_fields.data();
-    cloud.fields._length = cloud.fields._maximum = static_cast<uint32_t>(cloud_fields.size());
+    cloud.fields._length = cloud.fields._maximum = static_cast<uint32_t>(floats);
     cloud.fields._release = false;
     cloud.is_bigendian = std::endian::native == std::endian::big;
-    cloud.point_step = kCloudStep;
+    cloud.point_step = cloud_step;
     cloud.data._buffer = cloud_data.data();
     cloud.data._maximum = static_cast<uint32_t>(cloud_data.size());
     cloud.data._release = false;
@@ -392,33 +419,65 @@ void Pipeline::publishLoop() {
       d.features_total = static_cast<uint32_t>(def.total);
       d.detections = def.detections;
       d.continuous = def.continuous;
+      const vision::Prediction& pr = def.prediction;
+      const auto np = static_cast<uint32_t>(config_.prediction.enabled ? pr.horizons : 0);
+      for (uint32_t k = 0; k < np; ++k) {
+        p_horizon[k] = pr.horizon_s[k];
+        p_disp[k] = vec(pr.displacement[k]);
+        p_sigma[k] = pr.sigma_mm[k] * 1e-3;
+        p_model[k] = pr.model[k];
+      }
+      d.prediction_horizon._length = d.predicted_displacement._length = d.prediction_sigma._length =
+          d.predicted_by_model._length = np;
       (void)deformation_writer_.write(&d);
     }
     publish_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - r->tracked_ns));
     // The dense field, after the features and the deformation are out (off their latency).
     if (field != nullptr && field->update(r->features, r->detected, def.detections)) {
       const int m = std::min(field->points(), config_.field.max_grid_points);
+      // The grid predicted at each horizon with the mean's weights, when the mean's model is in
+      // use (else, as for the mean, the field as it is).
+      field->record(static_cast<double>(r->t_ns) * 1e-9);
+      std::array<bool, vision::kMaxHorizons> predicted{};
+      for (int h = 0; h < horizons && h < def.prediction.horizons; ++h) {
+        const auto hh = static_cast<size_t>(h);
+        Eigen::MatrixXd& g = predicted_grid[hh];
+        if (g.rows() != field->points()) g.setZero(field->points(), 3);  // a new grid only
+        predicted[hh] =
+            def.prediction.model[hh] &&
+            field->predict({def.prediction_weights[hh].data(),
+                            static_cast<size_t>(def.prediction_order)},
+                           def.prediction_step_s, g);
+      }
       bool dense = true;
       for (int k = 0; k < m; ++k) {
         const double conf = field->confidence(k);
-        std::array<float, kCloudFloats> v{};
+        std::array<float, kCloudMaxFloats> v{};
         if (conf > 0.0) {
           const cv::Vec3d disp = field->displacement(k), at = field->rest(k) + disp;
-          v = {static_cast<float>(at[0] * 1e-3),   static_cast<float>(at[1] * 1e-3),
-               static_cast<float>(at[2] * 1e-3),   static_cast<float>(disp[0] * 1e-3),
-               static_cast<float>(disp[1] * 1e-3), static_cast<float>(disp[2] * 1e-3),
-               static_cast<float>(conf)};
+          v[0] = static_cast<float>(at[0] * 1e-3);
+          v[1] = static_cast<float>(at[1] * 1e-3);
+          v[2] = static_cast<float>(at[2] * 1e-3);
+          for (int a = 0; a < 3; ++a) v[3 + static_cast<size_t>(a)] = static_cast<float>(disp[a] * 1e-3);
+          v[6] = static_cast<float>(conf);
+          for (int h = 0; h < horizons; ++h) {
+            const auto hh = static_cast<size_t>(h);
+            for (int a = 0; a < 3; ++a) {
+              const double p = predicted[hh] ? predicted_grid[hh](k, a) : disp[a];
+              v[kCloudFloats + 3 * hh + static_cast<size_t>(a)] = static_cast<float>(p * 1e-3);
+            }
+          }
         } else {
           v.fill(std::numeric_limits<float>::quiet_NaN());  // ROS's invalid point
-          v[kCloudFloats - 1] = 0.0F;
+          v[6] = 0.0F;
           dense = false;
         }
-        std::memcpy(cloud_data.data() + static_cast<size_t>(k) * kCloudStep, v.data(), kCloudStep);
+        std::memcpy(cloud_data.data() + static_cast<size_t>(k) * cloud_step, v.data(), cloud_step);
       }
       cloud.header.stamp = stamp;
       cloud.width = static_cast<uint32_t>(field->cols());
       cloud.height = static_cast<uint32_t>(m / std::max(1, field->cols()));
-      cloud.row_step = cloud.width * kCloudStep;
+      cloud.row_step = cloud.width * cloud_step;
       cloud.data._length = cloud.row_step * cloud.height;
       cloud.is_dense = dense;
       (void)field_writer_.write(&cloud);

@@ -156,6 +156,7 @@ std::vector<Oscillation> paperMotion() {
 }
 
 CortexScene::CortexScene(const CortexSpec& spec) : spec_(spec) {
+  for (const Oscillation& o : spec_.oscillations) clocks_.emplace_back(o);
   // {S}: origin at the patch centre; z towards the cameras, tilted by tilt_deg.
   t_cs_ = cv::Vec3d(spec.offset_mm[0], spec.offset_mm[1], spec.distance_mm);
   const cv::Vec3d towards_camera = -cv::normalize(t_cs_);
@@ -184,17 +185,90 @@ cv::Vec3d CortexScene::restPosition(double u, double v) const {
   return {u, v, -r2 / (2.0 * spec_.curvature_radius_mm) + gyri};
 }
 
+OscillationClock::OscillationClock(const Oscillation& o, double horizon_s) : o_(o) {
+  changes_ = std::isfinite(o.frequency_end_hz) || std::isfinite(o.amplitude_end_mm) ||
+             o.irregularity > 0.0;
+  if (o.irregularity <= 0.0 || o.frequency_hz <= 0.0) return;
+  // Irregular cycles: lengths and amplitudes drawn around the nominal ones at their start.
+  std::mt19937 rng(o.irregularity_seed);
+  std::normal_distribution<double> g(0.0, 1.0);
+  const auto draw = [&] { return std::clamp(g(rng), -2.5, 2.5) * o.irregularity; };
+  double t = 0.0;
+  cycle_start_.push_back(0.0);
+  cycle_amp_.push_back(1.0 + draw());
+  while (t < horizon_s) {
+    t += std::max(0.2, 1.0 + draw()) / std::max(frequency(t), 1e-3);
+    cycle_start_.push_back(t);
+    cycle_amp_.push_back(std::max(0.1, 1.0 + draw()));
+  }
+}
+
+double OscillationClock::frequency(double t) const {
+  if (!std::isfinite(o_.frequency_end_hz)) return o_.frequency_hz;
+  const double d = std::max(o_.change_duration_s, 1e-9);
+  const double a = std::clamp((t - o_.change_start_s) / d, 0.0, 1.0);
+  return o_.frequency_hz + a * (o_.frequency_end_hz - o_.frequency_hz);
+}
+
+double OscillationClock::amplitude(double t) const {
+  if (!std::isfinite(o_.amplitude_end_mm)) return o_.amplitude_mm;
+  const double d = std::max(o_.change_duration_s, 1e-9);
+  const double a = std::clamp((t - o_.change_start_s) / d, 0.0, 1.0);
+  return o_.amplitude_mm + a * (o_.amplitude_end_mm - o_.amplitude_mm);
+}
+
+double OscillationClock::theta(double t) const {
+  if (!cycle_start_.empty()) {
+    // Cycle k spans [start_k, start_k+1): theta = 2 pi (k + fraction).
+    if (t <= 0.0) return kTwoPi * t * o_.frequency_hz;
+    const auto it = std::upper_bound(cycle_start_.begin(), cycle_start_.end(), t);
+    if (it == cycle_start_.end()) return kTwoPi * static_cast<double>(cycle_start_.size());
+    const size_t k = static_cast<size_t>(it - cycle_start_.begin()) - 1;
+    const double frac = (t - cycle_start_[k]) / (cycle_start_[k + 1] - cycle_start_[k]);
+    return kTwoPi * (static_cast<double>(k) + frac);
+  }
+  if (!std::isfinite(o_.frequency_end_hz)) return kTwoPi * o_.frequency_hz * t;
+  // The integral of the piecewise linear frequency.
+  const double f0 = o_.frequency_hz, f1 = o_.frequency_end_hz, ts = o_.change_start_s;
+  const double d = std::max(o_.change_duration_s, 1e-9);
+  if (t <= ts) return kTwoPi * f0 * t;
+  const double r = std::min(t - ts, d);
+  double cycles = f0 * ts + f0 * r + 0.5 * (f1 - f0) / d * r * r;
+  if (t > ts + d) cycles += f1 * (t - ts - d);
+  return kTwoPi * cycles;
+}
+
+double OscillationClock::value(double t) const {
+  if (!changes_) {  // the original closed form, bit for bit
+    double s = std::sin(kTwoPi * o_.frequency_hz * t + o_.phase_rad);
+    for (const Harmonic& h : o_.harmonics)
+      s += h.relative_amplitude * std::sin(kTwoPi * h.multiple * o_.frequency_hz * t + h.phase_rad);
+    return o_.amplitude_mm * s;
+  }
+  const double th = theta(t);
+  double s = std::sin(th + o_.phase_rad);
+  for (const Harmonic& h : o_.harmonics) s += h.relative_amplitude * std::sin(h.multiple * th + h.phase_rad);
+  double a = amplitude(t);
+  if (!cycle_start_.empty() && t > 0.0) {
+    const auto it = std::upper_bound(cycle_start_.begin(), cycle_start_.end(), t);
+    if (it != cycle_start_.end()) {
+      const size_t k = static_cast<size_t>(it - cycle_start_.begin()) - 1;
+      const double frac = (t - cycle_start_[k]) / (cycle_start_[k + 1] - cycle_start_[k]);
+      const double blend = 0.5 - 0.5 * std::cos(CV_PI * frac);
+      a *= cycle_amp_[k] + blend * (cycle_amp_[k + 1] - cycle_amp_[k]);
+    }
+  }
+  return a * s;
+}
+
 cv::Vec3d CortexScene::displacement(double u, double v, double t) const {
   cv::Vec3d d(0, 0, 0);
   const double radius = spec_.radius_mm;
-  for (const Oscillation& o : spec_.oscillations) {
+  for (size_t i = 0; i < spec_.oscillations.size(); ++i) {
+    const Oscillation& o = spec_.oscillations[i];
     if (!o.enabled) continue;
-    double s = std::sin(kTwoPi * o.frequency_hz * t + o.phase_rad);
-    for (const Harmonic& h : o.harmonics) {
-      s += h.relative_amplitude * std::sin(kTwoPi * h.multiple * o.frequency_hz * t + h.phase_rad);
-    }
     const double w = 1.0 + (o.gradient[0] * u + o.gradient[1] * v) / radius;
-    d += cv::normalize(o.direction) * (o.amplitude_mm * s * w);
+    d += cv::normalize(o.direction) * (clocks_[i].value(t) * w);
   }
   if (spec_.sag.enabled) {
     const double r2 = (u * u + v * v) / (radius * radius);

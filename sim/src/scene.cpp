@@ -55,6 +55,15 @@ void readOscillation(TableReader& r, Oscillation& o) {
   const auto d =
       r.numbers("direction", {o.direction[0], o.direction[1], o.direction[2]}, 3, 3, -1e3, 1e3);
   o.direction = {d[0], d[1], d[2]};
+  // Changes over time: the NaN defaults mean none (a key present must be a number in range).
+  o.frequency_end_hz = r.number("frequency_end_hz", o.frequency_end_hz, 0.0, 20.0);
+  o.amplitude_end_mm = r.number("amplitude_end_mm", o.amplitude_end_mm, 0.0, 20.0);
+  o.change_start_s = r.number("change_start_s", o.change_start_s, 0.0, 1e6);
+  o.change_duration_s = r.number("change_duration_s", o.change_duration_s, 0.0, 1e6);
+  o.irregularity = r.number("irregularity", o.irregularity, 0.0, 0.5);
+  o.irregularity_seed =
+      static_cast<unsigned>(r.integer("irregularity_seed", static_cast<int>(o.irregularity_seed), 0,
+                                      1'000'000'000));
   if (const toml::array* hs = r.arrayOfTables("harmonics")) {
     o.harmonics.clear();
     for (size_t i = 0; i < hs->size(); ++i) {

@@ -12,9 +12,11 @@
 
 #include <opencv2/core.hpp>
 
+#include <array>
 #include <cmath>
 #include <csignal>
 #include <ctime>
+#include <fstream>
 #include <map>
 #include <sstream>
 
@@ -190,7 +192,8 @@ TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesAndTargetsAreFollowed) {
   const auto secs = [&] {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   };
-  const Received r = subscribe(domain, "or3", 0, 40, 0, 90, "", 25);
+  // ~10 s: long enough for the predictor's model to be in use (it needs ~5 s of history).
+  const Received r = subscribe(domain, "or3", 0, 120, 0, 120, "", 100);
   // The robot's question, as a ROS 2 node asks it (Targets.msg, TrackedTargets.msg): the grid's
   // middle point in the reference pair (its position less its displacement, from the last
   // cloud) and a point off the surface; then the middle point as it is now (FRAME_LATEST).
@@ -210,21 +213,23 @@ TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesAndTargetsAreFollowed) {
   kill(d.pid, SIGTERM);
   EXPECT_EQ(d.wait(secs), 0);
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  ASSERT_GE(r.field.size(), 25U);
+  ASSERT_GE(r.field.size(), 100U);
   std::map<std::string, const std::map<std::string, std::string>*> deformation_at;
   for (const auto& def : r.deformation) deformation_at[def.at("sec") + "." + def.at("nanosec")] = &def;
-  int matched = 0;
-  double worst = 0, moved = 0;
+  int matched = 0, models = 0;
+  double worst = 0, moved = 0, worst_predicted = 0;
   for (const auto& f : r.field) {
     EXPECT_EQ(f.at("fields"), "\"x:0:7:1,y:4:7:1,z:8:7:1,dx:12:7:1,dy:16:7:1,dz:20:7:1,"
-                              "confidence:24:7:1\"");
+                              "confidence:24:7:1,dx_50ms:28:7:1,dy_50ms:32:7:1,dz_50ms:36:7:1,"
+                              "dx_100ms:40:7:1,dy_100ms:44:7:1,dz_100ms:48:7:1,dx_200ms:52:7:1,"
+                              "dy_200ms:56:7:1,dz_200ms:60:7:1\"");
     EXPECT_EQ(f.at("missing"), "\"\"");
     EXPECT_EQ(f.at("frame_id"), "pulsetrack_left_camera");
     EXPECT_EQ(f.at("is_bigendian"), "0");
     const uint64_t width = std::stoull(f.at("width")), height = std::stoull(f.at("height"));
-    EXPECT_EQ(std::stoull(f.at("point_step")), 28U);
-    EXPECT_EQ(std::stoull(f.at("row_step")), 28U * width);
-    EXPECT_EQ(std::stoull(f.at("bytes")), 28U * width * height);
+    EXPECT_EQ(std::stoull(f.at("point_step")), 64U);
+    EXPECT_EQ(std::stoull(f.at("row_step")), 64U * width);
+    EXPECT_EQ(std::stoull(f.at("bytes")), 64U * width * height);
     // The default ROI covers ~25 x 20 mm of cortex at 1 mm: hundreds of grid points, most of
     // them within reach of a feature, all at the cortex's distance (45 cm).
     const uint64_t points = std::stoull(f.at("points")), valid = std::stoull(f.at("valid"));
@@ -244,12 +249,24 @@ TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesAndTargetsAreFollowed) {
       const double dd = std::stod(def->second->at(std::string("d") + axis));
       worst = std::max(worst, std::abs(fd - dd));
       moved = std::max(moved, std::abs(dd));
+      // The field's predictions agree with the mean's as its displacement does (the grid is
+      // predicted with the mean's weights, or held when the mean is).
+      int k = 0;
+      for (const char* h : {"50ms", "100ms", "200ms"}) {
+        const double fp = std::stod(f.at(std::string("mean_d") + axis + "_" + h));
+        const double dp = std::stod(def->second->at("pd" + std::string(axis) + std::to_string(k++)));
+        worst_predicted = std::max(worst_predicted, std::abs(fp - dp));
+      }
     }
+    models += def->second->at("pm1") == "1" ? 1 : 0;
   }
   std::cout << r.field.size() << " field samples, " << matched
             << " matched to their pair's deformation: the grid's mean displacement within "
             << worst * 1e3 << " mm of the features' mean, which moved up to " << moved * 1e3
-            << " mm\n";
+            << " mm; its predictions within " << worst_predicted * 1e3
+            << " mm of the mean's (the model in use in " << models << ")\n";
+  EXPECT_LT(worst_predicted, 1e-4);
+  EXPECT_GT(models, 5);
   EXPECT_GE(matched, 10);
   EXPECT_LT(worst, 1e-4);
   EXPECT_GT(moved, 2 * worst);
@@ -347,6 +364,25 @@ TEST(OfflineEqualsLive, TheDaemonAndTrackGiveTheSameSignalForEveryPair) {
   };
   std::map<long, std::vector<pulsetrack_msgs_msg_dds__Feature_>> live_features;
   std::map<long, pulsetrack_msgs_msg_dds__Deformation_> live_def;
+  // Per frame, per horizon: horizon, dx, dy, dz, sigma, model (copied: the sequences are loaned).
+  std::map<long, std::vector<std::array<double, 6>>> live_prediction;
+  const auto keep = [&](const pulsetrack_msgs_msg_dds__Deformation_& s) {
+    const long f = frame_of.at(s.frame);
+    live_def[f] = s;
+    live_def[f].rig_id = nullptr;  // not kept past the loan
+    live_def[f].header.frame_id = nullptr;
+    live_def[f].prediction_horizon = {};
+    live_def[f].predicted_displacement = {};
+    live_def[f].prediction_sigma = {};
+    live_def[f].predicted_by_model = {};
+    auto& pred = live_prediction[f];
+    pred.clear();
+    for (uint32_t k = 0; k < s.prediction_horizon._length; ++k) {
+      const auto& v = s.predicted_displacement._buffer[k];
+      pred.push_back({s.prediction_horizon._buffer[k], v.x, v.y, v.z, s.prediction_sigma._buffer[k],
+                   s.predicted_by_model._buffer[k] ? 1.0 : 0.0});
+    }
+  };
   const size_t last_frame = reader->size();
   while (secs() < 240.0 && live_features.size() < last_frame) {
     d.drain(secs());
@@ -367,9 +403,7 @@ TEST(OfflineEqualsLive, TheDaemonAndTrackGiveTheSameSignalForEveryPair) {
       any = true;
       if (info[0].valid_data) {
         const auto* s = static_cast<const pulsetrack_msgs_msg_dds__Deformation_*>(samples[0]);
-        live_def[frame_of.at(s->frame)] = *s;
-        live_def[frame_of.at(s->frame)].rig_id = nullptr;  // not kept past the loan
-        live_def[frame_of.at(s->frame)].header.frame_id = nullptr;
+        keep(*s);
       }
       dds_return_loan(dr, samples, 1);
       samples[0] = nullptr;
@@ -382,9 +416,7 @@ TEST(OfflineEqualsLive, TheDaemonAndTrackGiveTheSameSignalForEveryPair) {
   while (dds_take(dr, samples, info, 1, 1) > 0) {
     if (info[0].valid_data) {
       const auto* s = static_cast<const pulsetrack_msgs_msg_dds__Deformation_*>(samples[0]);
-      live_def[frame_of.at(s->frame)] = *s;
-      live_def[frame_of.at(s->frame)].rig_id = nullptr;
-      live_def[frame_of.at(s->frame)].header.frame_id = nullptr;
+      keep(*s);
     }
     dds_return_loan(dr, samples, 1);
     samples[0] = nullptr;
@@ -451,6 +483,38 @@ TEST(OfflineEqualsLive, TheDaemonAndTrackGiveTheSameSignalForEveryPair) {
   std::cout << compared << " feature rows equal, " << exact << " of " << def->size()
             << " deformation samples identical\n";
   EXPECT_GT(compared, 1000);
+  // The predictions: the same predictor on both paths, every pair, every horizon, bit for bit.
+  std::ifstream pin(dir / "track-prediction.csv");
+  std::string line;
+  std::getline(pin, line);
+  EXPECT_EQ(line, "frame,t,horizon,dx,dy,dz,sigma,model");
+  int predictions = 0, by_model = 0;
+  std::map<long, int> per_frame;
+  while (std::getline(pin, line)) {
+    std::vector<std::string> c;
+    std::stringstream ss(line);
+    for (std::string v; std::getline(ss, v, ',');) c.push_back(v);
+    ASSERT_EQ(c.size(), 8U) << line;
+    const long frame = std::stol(c[0]);
+    const int k = per_frame[frame]++;
+    const auto it = live_prediction.find(frame);
+    ASSERT_NE(it, live_prediction.end()) << "frame " << frame;
+    ASSERT_LT(static_cast<size_t>(k), it->second.size()) << "frame " << frame;
+    const auto& l = it->second[static_cast<size_t>(k)];
+    EXPECT_EQ(l[0], std::stod(c[2])) << line;
+    EXPECT_EQ(l[1], std::stod(c[3]) * 1e-3) << line;
+    EXPECT_EQ(l[2], std::stod(c[4]) * 1e-3) << line;
+    EXPECT_EQ(l[3], std::stod(c[5]) * 1e-3) << line;
+    EXPECT_EQ(l[4], std::stod(c[6]) * 1e-3) << line;
+    EXPECT_EQ(l[5], std::stod(c[7])) << line;
+    ++predictions;
+    by_model += c[7] == "1" ? 1 : 0;
+  }
+  for (const auto& [frame, pred] : live_prediction)
+    EXPECT_EQ(pred.size(), 3U) << "frame " << frame;
+  std::cout << predictions << " predictions identical (" << by_model << " by the model)\n";
+  EXPECT_EQ(predictions, 3 * static_cast<int>(def->size()));
+  EXPECT_GT(by_model, 0);
 }
 
 }  // namespace

@@ -23,7 +23,8 @@
 //   features frame sec nanosec rig n ok(=status 0) first_id(-1: none) x0 y0 z0 status0 reason0
 //            frame_id
 //   deformation frame sec nanosec rig dx dy dz vx vy vz ok total cx cy cz velocity_delay
-//            displacement_sigma velocity_sigma detections continuous frame_id
+//            displacement_sigma velocity_sigma detections continuous np (horizons), per horizon k:
+//            phk pdxk pdyk pdzk psk pmk, frame_id
 //   health sec nanosec rig state state_text last_error source source_state trigger_state
 //            recorder_state tracking_state clock_state security_state output_state
 //            clock_synchronized fps frames drops deadline_misses unpaired missing_triggers
@@ -207,6 +208,18 @@ static void printDeformation(const pulsetrack_msgs_msg_dds__Deformation_* m) {
   printf(" velocity_delay=%.17g displacement_sigma=%.17g velocity_sigma=%.17g", m->velocity_delay,
          m->displacement_sigma, m->velocity_sigma);
   printf(" detections=%" PRIu32 " continuous=%d", m->detections, m->continuous ? 1 : 0);
+  printf(" np=%" PRIu32 " np_displacement=%" PRIu32 " np_sigma=%" PRIu32 " np_model=%" PRIu32,
+         m->prediction_horizon._length, m->predicted_displacement._length,
+         m->prediction_sigma._length, m->predicted_by_model._length);
+  for (uint32_t k = 0; k < m->prediction_horizon._length && k < m->predicted_displacement._length &&
+                       k < m->prediction_sigma._length && k < m->predicted_by_model._length;
+       ++k) {
+    const geometry_msgs_msg_dds__Vector3_* p = &m->predicted_displacement._buffer[k];
+    printf(" ph%" PRIu32 "=%.17g pdx%" PRIu32 "=%.17g pdy%" PRIu32 "=%.17g pdz%" PRIu32
+           "=%.17g ps%" PRIu32 "=%.17g pm%" PRIu32 "=%d",
+           k, m->prediction_horizon._buffer[k], k, p->x, k, p->y, k, p->z, k,
+           m->prediction_sigma._buffer[k], k, m->predicted_by_model._buffer[k] ? 1 : 0);
+  }
   fputs(" frame_id=", stdout);
   putToken(m->header.frame_id);
   putchar('\n');
@@ -394,6 +407,25 @@ static void printField(const sensor_msgs_msg_dds__PointCloud2_* m) {
   printf(" points=%" PRIu32 " valid=%" PRIu32 " mean_dx=%.9g mean_dy=%.9g mean_dz=%.9g"
          " mean_confidence=%.9g min_z=%.9g max_z=%.9g",
          points, valid, sum[3] / n, sum[4] / n, sum[5] / n, sum[6] / n, min_z, max_z);
+  // Every other declared channel (the predictions dx_100ms, ...): its mean over the valid points.
+  for (uint32_t i = 0; i < m->fields._length && missing[0] == '\0'; ++i) {
+    const char* name = m->fields._buffer[i].name;
+    bool known = name == NULL;
+    for (int c = 0; c < 7 && !known; ++c) known = strcmp(name, kNames[c]) == 0;
+    if (known) continue;
+    double total = 0.0;
+    for (uint32_t q = 0; q < points; ++q) {
+      double x = 0, y = 0, z = 0, v = 0;
+      (void)readChannel(m, "x", q, &x);
+      (void)readChannel(m, "y", q, &y);
+      (void)readChannel(m, "z", q, &z);
+      if (!isfinite(x) || !isfinite(y) || !isfinite(z)) continue;
+      if (readChannel(m, name, q, &v)) total += v;
+    }
+    fputs(" mean_", stdout);
+    for (const char* c = name; *c; ++c) putchar(*c > 0x20 && *c < 0x7f && *c != '=' ? *c : '_');
+    printf("=%.9g", total / n);
+  }
   printf(" mx=%.9g my=%.9g mz=%.9g mdx=%.9g mdy=%.9g mdz=%.9g mconf=%.9g", mid[0], mid[1], mid[2],
          mid[3], mid[4], mid[5], mid[6]);
   fputs(" missing=", stdout);

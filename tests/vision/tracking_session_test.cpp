@@ -39,6 +39,8 @@ struct Recorded {
   bool detected = false;
   uint32_t detections = 0;
   cv::Vec3d mean_displacement{0, 0, 0};
+  cv::Vec3d true_displacement{0, 0, 0};  // the continuous truth (the test's own)
+  Prediction prediction;
 };
 
 // The dense field against held-out material points: a grid of left pixels over the whole ROI
@@ -250,7 +252,7 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
       ++fixed_set_n;
     }
     recorded.push_back({t, std::vector<Feature>(pr.features.begin(), pr.features.end()),
-                        pr.detected, d.detections, d.displacement});
+                        pr.detected, d.detections, d.displacement, true_out, d.prediction});
     session.afterPublish(l, r);
   }
   const auto rms = [](const std::vector<double>& v) {
@@ -283,6 +285,35 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
   EXPECT_LT(mean(sigma_d), 0.02);
   EXPECT_GT(mean(sigma_v), 0.005);
   EXPECT_LT(mean(sigma_v), 0.4);
+
+  // The prediction through the real tracker (10 fps, so 100 and 200 ms land on later pairs):
+  // relative RMS against holding, on the continuous truth, once the predictor has warmed up
+  // (from 24 s). The predictor's own figures on long cases: motion_predictor_test.cpp.
+  for (size_t k : {size_t{1}, size_t{2}}) {
+    double em = 0, eh = 0;
+    int n = 0;
+    for (size_t i = 0; i < recorded.size(); ++i) {
+      const Recorded& a = recorded[i];
+      if (a.t < 24.0 || a.prediction.horizons <= static_cast<int>(k)) continue;
+      const double h = a.prediction.horizon_s[k];
+      for (size_t j = i + 1; j < recorded.size(); ++j) {
+        if (std::abs(recorded[j].t - (a.t + h)) > 1e-6) continue;
+        const cv::Vec3d later = recorded[j].true_displacement;
+        const cv::Vec3d pm = a.prediction.displacement[k] - later;
+        const cv::Vec3d ph = a.mean_displacement - later;
+        em += pm.dot(pm);
+        eh += ph.dot(ph);
+        ++n;
+      }
+    }
+    const double rel = std::sqrt(em / std::max(eh, 1e-30));
+    std::cout << "prediction at " << recorded.back().prediction.horizon_s[k] * 1e3
+              << " ms through the tracker (10 fps): relative RMS " << rel << " over " << n
+              << " pairs (RMS " << std::sqrt(em / std::max(1, n) / 3.0) << " mm per axis, holding "
+              << std::sqrt(eh / std::max(1, n) / 3.0) << ")\n";
+    EXPECT_GT(n, 40);
+    EXPECT_LT(rel, k == 1 ? 0.4 : 0.6);
+  }
 
   // The dense field on held-out material points, its smoothing measured (the default is the
   // README's row), against the mean displacement and the affine limit.

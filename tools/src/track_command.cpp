@@ -233,6 +233,16 @@ int runTrack(const TrackArgs& a) {
   }
   std::vector<record::TrackRow> rows;
   std::vector<record::DeformationRow> deformation;
+  // The predictions, as pulsetrackd publishes them with each deformation sample (beside --out:
+  // track.csv -> track-prediction.csv).
+  const std::string prediction_path = [&] {
+    const std::filesystem::path p(a.out);
+    return (p.parent_path() / (p.stem().string() + "-prediction.csv")).string();
+  }();
+  std::ofstream prediction_out(prediction_path);
+  if (!prediction_out) return commandError("track", fmt::format("{}: cannot write", prediction_path));
+  prediction_out << "frame,t,horizon,dx,dy,dz,sigma,model\n";
+  long prediction_rows = 0;
   std::vector<double> step_us;
   cv::Mat left, right;
   int initial = -1;
@@ -281,6 +291,14 @@ int runTrack(const TrackArgs& a) {
                              d.displacement_sigma_mm, d.velocity_sigma_mm_s, d.centroid[0],
                              d.centroid[1], d.centroid[2], d.ok, d.total,
                              static_cast<int>(d.detections), d.continuous});
+      for (int k = 0; k < d.prediction.horizons; ++k) {
+        const auto kk = static_cast<size_t>(k);
+        const cv::Vec3d& p = d.prediction.displacement[kk];
+        prediction_out << fmt::format("{},{:.17g},{:.17g},{:.17g},{:.17g},{:.17g},{:.17g},{}\n",
+                                      frame, t, d.prediction.horizon_s[kk], p[0], p[1], p[2],
+                                      d.prediction.sigma_mm[kk], d.prediction.model[kk] ? 1 : 0);
+        ++prediction_rows;
+      }
     }
     if (field_out && pr.state == vision::SessionState::kTracking) {
       if (auto ok = field_out->add(frame, t, pr.features, pr.detected, pr.deformation.detections,
@@ -304,6 +322,9 @@ int runTrack(const TrackArgs& a) {
   const std::string def_path = deformationPath(a);
   if (auto ok = record::writeDeformationCsv(def_path, deformation); !ok)
     return commandError("track", ok.error().message);
+  prediction_out.close();
+  if (!prediction_out)
+    return commandError("track", fmt::format("{}: write failed", prediction_path));
   std::sort(step_us.begin(), step_us.end());
   const auto pct = [&](double p) {
     return step_us.empty()
@@ -316,9 +337,11 @@ int runTrack(const TrackArgs& a) {
       "features          {} at the first detection, {} ok at the last frame, {} re-detections\n"
       "per-frame step    p50 {:.0f} us, p99 {:.0f} us, max {:.0f} us (pairs without detection)\n"
       "track written to  {}\n"
-      "deformation       {} ({} pairs)\n",
+      "deformation       {} ({} pairs)\n"
+      "prediction        {} ({} rows: frame,t,horizon,dx,dy,dz,sigma,model)\n",
       n, initial, session.tracker().okCount(), session.redetections(), pct(0.5), pct(0.99),
-      step_us.empty() ? 0.0 : step_us.back(), a.out, def_path, deformation.size());
+      step_us.empty() ? 0.0 : step_us.back(), a.out, def_path, deformation.size(),
+      prediction_path, prediction_rows);
   if (field_out) {
     auto lines = field_out->finish();
     if (!lines) return commandError("track", lines.error().message);

@@ -210,6 +210,11 @@ void DeformationField::setNodes(std::vector<Node> next) {
   }
   a_.resize(k + 3, k + 3);
   lu_ = Eigen::PartialPivLU<Eigen::MatrixXd>(k + 3);
+  hist_head_ = hist_size_ = 0;  // a new basis: the solutions before it do not combine with it
+  for (Eigen::MatrixXd& h : hist_w_) h.setZero(k + 3, 3);
+  w_pred_.setZero(k + 3, 3);
+  w_a_.setZero(k + 3, 3);
+  w_b_.setZero(k + 3, 3);
   y_.setZero(k + 3, 3);
   w_.setZero(k + 3, 3);
   factored_ = false;
@@ -381,6 +386,66 @@ bool DeformationField::update(std::span<const Feature> features, bool detected,
   if (!valid_) return false;
   if (ok_changed) confidences();
   for (int a = 0; a < 3; ++a) disp_.col(a).noalias() = g_ * w_.col(a);
+  return true;
+}
+
+void DeformationField::enablePrediction(double history_s, double max_rate_hz) {
+  const auto cap = static_cast<size_t>(std::ceil(history_s * max_rate_hz)) + 4;
+  hist_t_.assign(cap, 0.0);
+  hist_w_.assign(cap, Eigen::MatrixXd::Zero(w_.rows(), 3));
+  hist_head_ = hist_size_ = 0;
+}
+
+void DeformationField::record(double t_s) noexcept {
+  if (!valid_ || hist_t_.empty()) return;
+  const size_t cap = hist_t_.size();
+  if (hist_size_ > 0 && t_s <= hist_t_[(hist_head_ + hist_size_ - 1) % cap]) return;
+  const size_t slot = (hist_head_ + hist_size_) % cap;
+  hist_t_[slot] = t_s;
+  hist_w_[slot] = w_;  // the same size since the last rebuild: no allocation
+  if (hist_size_ < cap)
+    ++hist_size_;
+  else
+    hist_head_ = (hist_head_ + 1) % cap;
+}
+
+bool DeformationField::solutionAt(double t, Eigen::MatrixXd& w) const noexcept {
+  if (hist_size_ == 0) return false;
+  const size_t cap = hist_t_.size();
+  const auto idx = [&](size_t i) { return (hist_head_ + i) % cap; };
+  if (t < hist_t_[idx(0)] - 1e-12 || t > hist_t_[idx(hist_size_ - 1)] + 1e-12) return false;
+  size_t lo = 0, hi = hist_size_ - 1;
+  while (lo < hi) {
+    const size_t mid = (lo + hi) / 2;
+    if (hist_t_[idx(mid)] < t)
+      lo = mid + 1;
+    else
+      hi = mid;
+  }
+  const size_t b = idx(lo);
+  if (lo == 0 || hist_t_[b] <= t) {
+    w = hist_w_[b];
+    return true;
+  }
+  const size_t a = idx(lo - 1);
+  const double f = (t - hist_t_[a]) / (hist_t_[b] - hist_t_[a]);
+  w = (1.0 - f) * hist_w_[a] + f * hist_w_[b];
+  return true;
+}
+
+bool DeformationField::predict(std::span<const double> weights, double step_s,
+                               Eigen::MatrixXd& out) noexcept {
+  if (!valid_ || hist_size_ == 0) return false;
+  const double t = hist_t_[(hist_head_ + hist_size_ - 1) % hist_t_.size()];
+  if (!solutionAt(t, w_a_)) return false;
+  w_pred_ = w_;
+  for (size_t j = 0; j < weights.size(); ++j) {
+    if (!solutionAt(t - static_cast<double>(j + 1) * step_s, w_b_)) return false;
+    w_pred_ += weights[j] * (w_a_ - w_b_);
+    w_a_.swap(w_b_);
+  }
+  if (out.rows() != g_.rows() || out.cols() != 3) return false;  // the caller sizes it
+  for (int a = 0; a < 3; ++a) out.col(a).noalias() = g_ * w_pred_.col(a);
   return true;
 }
 

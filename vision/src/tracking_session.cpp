@@ -34,7 +34,7 @@ const char* toString(SessionState s) noexcept {
 }
 
 TrackingSession::TrackingSession(const StereoRig& rig, const SessionConfig& config)
-    : tracker_(rig, config.tracker), rig_(rig), config_(config) {
+    : tracker_(rig, config.tracker), rig_(rig), config_(config), predictor_(config.prediction) {
   const auto n = static_cast<size_t>(std::max(1, config_.tracker.max_features));
   prev_ok_.assign(n, 0);
   prev_d_.assign(n, cv::Vec3d(0, 0, 0));
@@ -294,6 +294,16 @@ void TrackingSession::deformation(int64_t t_ns) noexcept {
   d.displacement = output_;
   d.displacement_sigma_mm = sigma_d;
   d.continuous = continuous;
+  if (config_.prediction.enabled) {
+    if (!continuous) predictor_.reset();
+    d.prediction = predictor_.add(t, output_);
+    for (int k = 0; k < d.prediction.horizons; ++k) {
+      const auto w = predictor_.weights(k);
+      std::copy(w.begin(), w.end(), d.prediction_weights[static_cast<size_t>(k)].begin());
+    }
+    d.prediction_order = predictor_.order();
+    d.prediction_step_s = predictor_.step();
+  }
   for (size_t i = 0; i < n; ++i) {
     prev_ok_[i] = feats[i].status == FeatureStatus::kOk ? 1 : 0;
     if (prev_ok_[i] != 0) prev_d_[i] = feats[i].point - feats[i].point0;

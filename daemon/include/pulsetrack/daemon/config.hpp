@@ -11,6 +11,7 @@
 #include "pulsetrack/rt/thread_policy.hpp"
 #include "pulsetrack/vision/deformation_field.hpp"
 #include "pulsetrack/vision/error.hpp"
+#include "pulsetrack/vision/motion_predictor.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
 
 namespace pulsetrack::daemon {
@@ -57,6 +58,7 @@ struct DaemonConfig {
   double velocity_window_s = 0.25;  // the published velocity's least-squares window
   vision::TrackerConfig tracker;
   vision::FieldConfig field;  // [field]: the dense deformation field (rt/.../field)
+  vision::PredictionConfig prediction;  // [prediction]: latency compensation, with deformation
   bool lock_memory = true;
   double deadline_ms = 20.0;
   rt::ThreadPolicy capture{80, -1}, track{70, -1}, publish{60, -1};

@@ -11,6 +11,7 @@
 // left camera frame {C} is the reference: CortexScene::position(u, v, t) is the true 3D position
 // of a material point at time t in {C}, in mm.
 
+#include <limits>
 #include <opencv2/core.hpp>
 #include <string>
 #include <vector>
@@ -38,6 +39,36 @@ struct Oscillation {
   cv::Vec2d gradient{0.0, 0.0};        // relative amplitude change per patch radius along u, v
   cv::Vec3d direction{0.0, 0.0, 1.0};  // in {S}; normalized on use
   bool enabled = true;
+  // Changes over time (the motion predictor's cases), each exact in the truth. Over
+  // [change_start_s, change_start_s + change_duration_s] the frequency goes linearly from
+  // frequency_hz to frequency_end_hz and the amplitude from amplitude_mm to amplitude_end_mm (the
+  // phase is the frequency's integral); NaN: no change. irregularity > 0: each cycle's length and
+  // amplitude are drawn around the nominal with that relative standard deviation (seeded by
+  // irregularity_seed), the phase continuous, the amplitude blended over each cycle.
+  double frequency_end_hz = std::numeric_limits<double>::quiet_NaN();
+  double amplitude_end_mm = std::numeric_limits<double>::quiet_NaN();
+  double change_start_s = 0.0;
+  double change_duration_s = 0.0;
+  double irregularity = 0.0;
+  unsigned irregularity_seed = 1;
+};
+
+// An Oscillation's signal over time: sin(theta + phase) + sum_h r_h sin(m_h theta + phase_h),
+// scaled by the amplitude (mm), where theta is the phase the frequency (changing, irregular)
+// integrates to. Cycles of an irregular oscillation are drawn once, up to `horizon_s`.
+class OscillationClock {
+ public:
+  explicit OscillationClock(const Oscillation& o, double horizon_s = 4.0 * 3600.0);
+  // The displacement along the direction at the patch's mean (weight 1), mm.
+  [[nodiscard]] double value(double t) const;
+  [[nodiscard]] double frequency(double t) const;  // Hz, the nominal one at t
+  [[nodiscard]] double amplitude(double t) const;  // mm, the nominal one at t
+
+ private:
+  [[nodiscard]] double theta(double t) const;  // rad, without the phase
+  Oscillation o_;
+  bool changes_ = false;
+  std::vector<double> cycle_start_, cycle_amp_;  // irregular: per cycle
 };
 
 // Slow brain shift: the surface sinks along -z of {S} by depth_mm * (1 - exp(-t / tau)),
@@ -144,6 +175,7 @@ class CortexScene {
                      const cv::Vec3d& camera_centre, double t);
 
   CortexSpec spec_;
+  std::vector<OscillationClock> clocks_;  // per oscillation
   cv::Matx33d r_cs_;
   cv::Vec3d t_cs_;
   cv::Vec3d light_c_;  // lamp position in {C}

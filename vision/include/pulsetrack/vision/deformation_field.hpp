@@ -91,6 +91,16 @@ class DeformationField {
   // (a fixed-point iteration, exact to ~1e-9 mm for sub-mm motions). Invalid field: `now_mm`.
   [[nodiscard]] cv::Vec3d reference(const cv::Vec3d& now_mm) const noexcept;
 
+  // Prediction (MotionPredictor's weights applied to the field): keep `history_s` of the
+  // spline's solutions (allocated here, at most max_rate_hz of them per second); record() after
+  // each valid update() at the pair's time; predict() fills `out` (points() x 3, mm) with the
+  // grid's displacement at t + horizon, from the weights of that horizon:
+  //   W(t + h) = W(t) + sum_j w_j (W(t - j step) - W(t - (j + 1) step)),  grid = basis x W.
+  // False (and `out` untouched) while the history since the last re-detection is too short.
+  void enablePrediction(double history_s, double max_rate_hz);
+  void record(double t_s) noexcept;
+  bool predict(std::span<const double> weights, double step_s, Eigen::MatrixXd& out) noexcept;
+
   // The surface frame: origin, e1, e2, normal ({C}).
   [[nodiscard]] const cv::Vec3d& origin() const noexcept { return origin_; }
   [[nodiscard]] const cv::Vec3d& axisS() const noexcept { return e1_; }
@@ -140,6 +150,12 @@ class DeformationField {
   Eigen::MatrixXd g_, rest_, disp_;
   std::vector<double> conf_, nearest_;
   double typical_ = 1.0;  // the ok features' median nearest-neighbour spacing (mm)
+  // The solutions' history for prediction: a ring of (t, W), cleared when the basis changes.
+  [[nodiscard]] bool solutionAt(double t, Eigen::MatrixXd& w) const noexcept;
+  std::vector<double> hist_t_;
+  std::vector<Eigen::MatrixXd> hist_w_;
+  size_t hist_head_ = 0, hist_size_ = 0;
+  Eigen::MatrixXd w_pred_, w_a_, w_b_;
   int used_ = 0, downweighted_ = 0, factorizations_ = 0;
 };
 

@@ -21,7 +21,8 @@
 // nothing jumps because the mean is taken over other points. Velocity: the slope of a causal
 // least-squares line through the displacement over the last velocity_window_s, published with
 // its group delay (the window's mean age). Noise: the features' pair-to-pair scatter about the
-// mean increment, as a standard error of the mean (smoothed over ~20 pairs).
+// mean increment, as a standard error of the mean (smoothed over ~20 pairs). Prediction: the
+// displacement at t + each configured horizon (MotionPredictor, restarted with the signal).
 
 #include <array>
 #include <cstdint>
@@ -31,6 +32,7 @@
 #include <vector>
 
 #include "pulsetrack/vision/error.hpp"
+#include "pulsetrack/vision/motion_predictor.hpp"
 #include "pulsetrack/vision/stereo_rig.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
 
@@ -42,6 +44,7 @@ struct SessionConfig {
   double depth_tolerance_mm = 20.0;
   double retry_interval_s = 1.0;    // between detection attempts that found nothing
   double velocity_window_s = 0.25;  // the velocity's least-squares window
+  PredictionConfig prediction;      // the displacement at t + horizon (MotionPredictor)
 };
 
 struct Deformation {
@@ -56,6 +59,12 @@ struct Deformation {
   int total = 0;
   uint32_t detections = 0;  // feature sets so far in this signal (1 + re-detections)
   bool continuous = true;   // false: the signal (re)started here
+  // The displacement predicted at the configured horizons (prediction.enabled), with its
+  // expected error; the predictor's weights, so that the field is predicted the same way.
+  Prediction prediction;
+  std::array<std::array<double, kMaxOrder>, kMaxHorizons> prediction_weights{};
+  int prediction_order = 0;
+  double prediction_step_s = 0.0;
 };
 
 enum class SessionState : uint8_t {
@@ -141,6 +150,7 @@ class TrackingSession {
   std::vector<Sample> ring_;
   size_t ring_head_ = 0, ring_size_ = 0;
   int64_t t0_ns_ = 0;
+  MotionPredictor predictor_;
 };
 
 }  // namespace pulsetrack::vision
