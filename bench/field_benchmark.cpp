@@ -3,7 +3,8 @@
 //   steady:   the same features ok as in the last pair (one solve with the kept factors, the grid)
 //   changing: one feature hidden or back every pair (the system factored again, IRLS)
 //   rebuild:  a re-detection pair (new features: the basis and the grid's basis computed again)
-// and the query a robot makes (one material point).
+// and the query a robot makes (one material point); the motion predictor's step (three
+// horizons) and the grid's prediction at one horizon.
 #include <benchmark/benchmark.h>
 
 #include <cmath>
@@ -11,6 +12,7 @@
 #include <vector>
 
 #include "pulsetrack/vision/deformation_field.hpp"
+#include "pulsetrack/vision/motion_predictor.hpp"
 
 namespace {
 
@@ -46,8 +48,8 @@ struct Patch {
     std::normal_distribution<double> g(0.0, 0.01);
     for (size_t i = 0; i < uv.size(); ++i) {
       const double w = 1 + 0.3 * uv[i][0] / 30;
-      features[i].point = features[i].point0 + cv::Vec3d(0.05, 0.02, 0.4 * w) *
-                                                   std::sin(2 * M_PI * 0.2 * t) +
+      features[i].point = features[i].point0 +
+                          cv::Vec3d(0.05, 0.02, 0.4 * w) * std::sin(2 * M_PI * 0.2 * t) +
                           cv::Vec3d(g(rng), g(rng), g(rng));
     }
   }
@@ -124,8 +126,42 @@ void BM_FieldQuery(benchmark::State& state) {
   for (auto _ : state) benchmark::DoNotOptimize(field.at(q));
 }
 
+void BM_PredictorStep(benchmark::State& state) {
+  pulsetrack::vision::MotionPredictor p(pulsetrack::vision::PredictionConfig{});
+  double t = 0;
+  for (int i = 0; i < 900; ++i, t += 1.0 / 30) {  // warmed up: fitted and scored
+    (void)p.add(t, cv::Vec3d(0.05, 0.02, 0.4) * std::sin(2 * M_PI * 0.2 * t) +
+                       cv::Vec3d(0, 0.01, 0.15) * std::sin(2 * M_PI * t));
+  }
+  for (auto _ : state) {
+    t += 1.0 / 30;
+    benchmark::DoNotOptimize(p.add(t, cv::Vec3d(0.05, 0.02, 0.4) * std::sin(2 * M_PI * 0.2 * t)));
+  }
+}
+
+void BM_FieldPrediction(benchmark::State& state) {
+  const pulsetrack::vision::PredictionConfig pc;
+  Patch p(100);
+  DeformationField field(grid60(), 100);
+  field.enablePrediction(pc.order * pc.step_s + 0.1, 100.0);
+  (void)field.update(p.features, true, 1);
+  std::mt19937 rng(1);
+  double t = 0;
+  for (int i = 0; i < 60; ++i, t += 1.0 / 30) {
+    p.move(t, rng);
+    (void)field.update(p.features, false, 1);
+    field.record(t);
+  }
+  std::vector<double> w(static_cast<size_t>(pc.order), 0.05);
+  Eigen::MatrixXd out = Eigen::MatrixXd::Zero(field.points(), 3);
+  for (auto _ : state) benchmark::DoNotOptimize(field.predict(w, pc.step_s, out));
+  state.counters["grid_points"] = field.points();
+}
+
 }  // namespace
 
+BENCHMARK(BM_PredictorStep)->Unit(benchmark::kMicrosecond)->MinTime(0.5);
+BENCHMARK(BM_FieldPrediction)->Unit(benchmark::kMicrosecond)->MinTime(1.0);
 BENCHMARK(BM_FieldSteady)->Unit(benchmark::kMicrosecond)->MinTime(1.0);
 BENCHMARK(BM_FieldChangingSet)->Unit(benchmark::kMicrosecond)->MinTime(1.0);
 BENCHMARK(BM_FieldRebuild)->Unit(benchmark::kMicrosecond)->MinTime(1.0);

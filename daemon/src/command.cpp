@@ -71,8 +71,8 @@ std::string checkTargets(const pulsetrack_msgs_msg_dds__Targets_& t, const std::
     why = "no points buffer";
   for (uint32_t i = 0; i < t.points._length && why.empty(); ++i) {
     const geometry_msgs_msg_dds__Point_& p = t.points._buffer[i];
-    if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z) ||
-        std::abs(p.x) > 100 || std::abs(p.y) > 100 || std::abs(p.z) > 100)
+    if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z) || std::abs(p.x) > 100 ||
+        std::abs(p.y) > 100 || std::abs(p.z) > 100)
       why = fmt::format("point {} is not a finite position within 100 m", i);
   }
   return why.empty() ? "" : fmt::format("targets set {} refused: {}", t.set_id, why);

@@ -2,6 +2,8 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
+
 #include "pulsetrack/cfg/table_reader.hpp"
 
 namespace pulsetrack::daemon {
@@ -237,11 +239,12 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     TableReader s(*t, file, "prediction", &error);
     vision::PredictionConfig& p = c.prediction;
     p.enabled = s.boolean("enabled", p.enabled);
-    std::vector<double> ms;
-    for (double h : p.horizons_s) ms.push_back(h * 1e3);
+    std::vector<double> ms(p.horizons_s.size());
+    std::transform(p.horizons_s.begin(), p.horizons_s.end(), ms.begin(),
+                   [](double h) { return h * 1e3; });
     ms = s.numbers("horizons_ms", ms, 1, vision::kMaxHorizons, 1.0, 2000.0);
-    p.horizons_s.clear();
-    for (double h : ms) p.horizons_s.push_back(h * 1e-3);
+    p.horizons_s.resize(ms.size());
+    std::transform(ms.begin(), ms.end(), p.horizons_s.begin(), [](double h) { return h * 1e-3; });
     p.step_s = s.number("step_ms", p.step_s * 1e3, 5.0, 500.0) * 1e-3;
     p.order = s.integer("order", p.order, 2, vision::kMaxOrder);
     p.memory_s = s.number("memory_s", p.memory_s, 1.0, 3600.0);

@@ -340,15 +340,15 @@ void Pipeline::publishLoop() {
   if (config_.field.enabled) {
     field = std::make_unique<vision::DeformationField>(config_.field, config_.tracker.max_features);
     if (horizons > 0) {
-      field->enablePrediction(
-          config_.prediction.order * config_.prediction.step_s + 0.1,
-          std::max(config_.prediction.max_rate_hz, 2.0 * config_.fps));
+      field->enablePrediction(config_.prediction.order * config_.prediction.step_s + 0.1,
+                              std::max(config_.prediction.max_rate_hz, 2.0 * config_.fps));
     }
     cloud_data.assign(static_cast<size_t>(config_.field.max_grid_points) * cloud_step, 0);
     for (const char* n : kCloudFieldNames) cloud_names.emplace_back(n);
     for (int k = 0; k < horizons; ++k) {
       const long ms = std::lround(config_.prediction.horizons_s[static_cast<size_t>(k)] * 1e3);
-      for (const char* axis : {"dx", "dy", "dz"}) cloud_names.push_back(fmt::format("{}_{}ms", axis, ms));
+      for (const char* axis : {"dx", "dy", "dz"})
+        cloud_names.push_back(fmt::format("{}_{}ms", axis, ms));
     }
     for (size_t i = 0; i < floats; ++i) {
       cloud_fields[i].name = cloud_names[i].data();
@@ -444,10 +444,9 @@ void Pipeline::publishLoop() {
         Eigen::MatrixXd& g = predicted_grid[hh];
         if (g.rows() != field->points()) g.setZero(field->points(), 3);  // a new grid only
         predicted[hh] =
-            def.prediction.model[hh] &&
-            field->predict({def.prediction_weights[hh].data(),
-                            static_cast<size_t>(def.prediction_order)},
-                           def.prediction_step_s, g);
+            def.prediction.model[hh] && field->predict({def.prediction_weights[hh].data(),
+                                                        static_cast<size_t>(def.prediction_order)},
+                                                       def.prediction_step_s, g);
       }
       bool dense = true;
       for (int k = 0; k < m; ++k) {
@@ -458,7 +457,8 @@ void Pipeline::publishLoop() {
           v[0] = static_cast<float>(at[0] * 1e-3);
           v[1] = static_cast<float>(at[1] * 1e-3);
           v[2] = static_cast<float>(at[2] * 1e-3);
-          for (int a = 0; a < 3; ++a) v[3 + static_cast<size_t>(a)] = static_cast<float>(disp[a] * 1e-3);
+          for (int a = 0; a < 3; ++a)
+            v[3 + static_cast<size_t>(a)] = static_cast<float>(disp[a] * 1e-3);
           v[6] = static_cast<float>(conf);
           for (int h = 0; h < horizons; ++h) {
             const auto hh = static_cast<size_t>(h);

@@ -10,14 +10,13 @@
 #include <fmt/format.h>
 #include <gtest/gtest.h>
 
-#include <opencv2/core.hpp>
-
 #include <array>
 #include <cmath>
 #include <csignal>
 #include <ctime>
 #include <fstream>
 #include <map>
+#include <opencv2/core.hpp>
 #include <sstream>
 
 #include "daemon/daemon_process.hpp"
@@ -205,24 +204,26 @@ TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesAndTargetsAreFollowed) {
   const auto triple = [](const cv::Vec3d& p) {
     return fmt::format("{:.9f},{:.9f},{:.9f}", p[0], p[1], p[2]);
   };
-  const Received by_ref = subscribe(domain, "or3", 0, 30, 0, 90, "", 0,
-                                    "--targets '" + triple(ref) + ";0,0,1.45'", 15);
-  const Received by_now = subscribe(domain, "or3", 0, 0, 0, 90, "", 0,
-                                    "--targets '" + triple(now) + "' --targets-frame latest --set-id 43",
-                                    5);
+  const Received by_ref =
+      subscribe(domain, "or3", 0, 30, 0, 90, "", 0, "--targets '" + triple(ref) + ";0,0,1.45'", 15);
+  const Received by_now =
+      subscribe(domain, "or3", 0, 0, 0, 90, "", 0,
+                "--targets '" + triple(now) + "' --targets-frame latest --set-id 43", 5);
   kill(d.pid, SIGTERM);
   EXPECT_EQ(d.wait(secs), 0);
   ASSERT_EQ(r.exit_code, 0) << r.output;
   ASSERT_GE(r.field.size(), 100U);
   std::map<std::string, const std::map<std::string, std::string>*> deformation_at;
-  for (const auto& def : r.deformation) deformation_at[def.at("sec") + "." + def.at("nanosec")] = &def;
+  for (const auto& def : r.deformation)
+    deformation_at[def.at("sec") + "." + def.at("nanosec")] = &def;
   int matched = 0, models = 0;
   double worst = 0, moved = 0, worst_predicted = 0;
   for (const auto& f : r.field) {
-    EXPECT_EQ(f.at("fields"), "\"x:0:7:1,y:4:7:1,z:8:7:1,dx:12:7:1,dy:16:7:1,dz:20:7:1,"
-                              "confidence:24:7:1,dx_50ms:28:7:1,dy_50ms:32:7:1,dz_50ms:36:7:1,"
-                              "dx_100ms:40:7:1,dy_100ms:44:7:1,dz_100ms:48:7:1,dx_200ms:52:7:1,"
-                              "dy_200ms:56:7:1,dz_200ms:60:7:1\"");
+    EXPECT_EQ(f.at("fields"),
+              "\"x:0:7:1,y:4:7:1,z:8:7:1,dx:12:7:1,dy:16:7:1,dz:20:7:1,"
+              "confidence:24:7:1,dx_50ms:28:7:1,dy_50ms:32:7:1,dz_50ms:36:7:1,"
+              "dx_100ms:40:7:1,dy_100ms:44:7:1,dz_100ms:48:7:1,dx_200ms:52:7:1,"
+              "dy_200ms:56:7:1,dz_200ms:60:7:1\"");
     EXPECT_EQ(f.at("missing"), "\"\"");
     EXPECT_EQ(f.at("frame_id"), "pulsetrack_left_camera");
     EXPECT_EQ(f.at("is_bigendian"), "0");
@@ -254,7 +255,8 @@ TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesAndTargetsAreFollowed) {
       int k = 0;
       for (const char* h : {"50ms", "100ms", "200ms"}) {
         const double fp = std::stod(f.at(std::string("mean_d") + axis + "_" + h));
-        const double dp = std::stod(def->second->at("pd" + std::string(axis) + std::to_string(k++)));
+        const double dp =
+            std::stod(def->second->at("pd" + std::string(axis) + std::to_string(k++)));
         worst_predicted = std::max(worst_predicted, std::abs(fp - dp));
       }
     }
@@ -380,7 +382,7 @@ TEST(OfflineEqualsLive, TheDaemonAndTrackGiveTheSameSignalForEveryPair) {
     for (uint32_t k = 0; k < s.prediction_horizon._length; ++k) {
       const auto& v = s.predicted_displacement._buffer[k];
       pred.push_back({s.prediction_horizon._buffer[k], v.x, v.y, v.z, s.prediction_sigma._buffer[k],
-                   s.predicted_by_model._buffer[k] ? 1.0 : 0.0});
+                      s.predicted_by_model._buffer[k] ? 1.0 : 0.0});
     }
   };
   const size_t last_frame = reader->size();
@@ -510,8 +512,7 @@ TEST(OfflineEqualsLive, TheDaemonAndTrackGiveTheSameSignalForEveryPair) {
     ++predictions;
     by_model += c[7] == "1" ? 1 : 0;
   }
-  for (const auto& [frame, pred] : live_prediction)
-    EXPECT_EQ(pred.size(), 3U) << "frame " << frame;
+  for (const auto& [frame, pred] : live_prediction) EXPECT_EQ(pred.size(), 3U) << "frame " << frame;
   std::cout << predictions << " predictions identical (" << by_model << " by the model)\n";
   EXPECT_EQ(predictions, 3 * static_cast<int>(def->size()));
   EXPECT_GT(by_model, 0);

@@ -109,9 +109,8 @@ TEST(Dds, Ros2MessagesMatchTheIdl) {
   std::ifstream f(std::string(PULSETRACK_SOURCE_DIR) + "/msgs/idl/pulsetrack_msgs.idl");
   const std::string idl((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
   ASSERT_FALSE(idl.empty());
-  for (const char* t :
-       {"Feature", "Features", "Deformation", "StageLatency", "Health", "Command", "Targets",
-        "TrackedTargets"}) {
+  for (const char* t : {"Feature", "Features", "Deformation", "StageLatency", "Health", "Command",
+                        "Targets", "TrackedTargets"}) {
     const auto a = idlFields(idl, t);
     const auto b = msgFields(std::string(PULSETRACK_SOURCE_DIR) + "/msgs/ros/pulsetrack_msgs/msg/" +
                              t + ".msg");

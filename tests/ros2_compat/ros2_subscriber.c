@@ -38,9 +38,9 @@
 // --targets "x,y,z;x,y,z" (m) [--targets-frame reference|latest]: publishes one
 // pulsetrack_msgs/Targets set (set_id 42, or --set-id N) first, as a ROS 2 node with
 // rclcpp::QoS(1).reliable().transient_local(); --tracked N: TrackedTargets samples to wait for.
-// then "summary features=N deformation=N health=N field=N tracked=N". Exit 0: every requested count reached;
-// 1: timeout (or interrupted) first, with what matched on stderr; 2: bad usage or a DDS error
-// (named on stderr).
+// then "summary features=N deformation=N health=N field=N tracked=N". Exit 0: every requested count
+// reached; 1: timeout (or interrupted) first, with what matched on stderr; 2: bad usage or a DDS
+// error (named on stderr).
 #define _POSIX_C_SOURCE 200809L
 
 #include <dds/dds.h>
@@ -312,8 +312,8 @@ static void printTracked(const pulsetrack_msgs_msg_dds__TrackedTargets_* m) {
   putToken(m->rig_id);
   printf(" set_id=%" PRIu32 " signal=%" PRIu32 " n=%" PRIu32 " n_position=%" PRIu32
          " n_displacement=%" PRIu32 " n_confidence=%" PRIu32,
-         m->set_id, m->signal, m->reference._length, m->position._length,
-         m->displacement._length, m->confidence._length);
+         m->set_id, m->signal, m->reference._length, m->position._length, m->displacement._length,
+         m->confidence._length);
   for (uint32_t k = 0; k < m->reference._length && k < m->position._length &&
                        k < m->displacement._length && k < m->confidence._length;
        ++k) {
@@ -404,7 +404,8 @@ static void printField(const sensor_msgs_msg_dds__PointCloud2_* m) {
     if (v[2] > max_z) max_z = v[2];
   }
   const double n = valid > 0 ? (double)valid : (double)NAN;
-  printf(" points=%" PRIu32 " valid=%" PRIu32 " mean_dx=%.9g mean_dy=%.9g mean_dz=%.9g"
+  printf(" points=%" PRIu32 " valid=%" PRIu32
+         " mean_dx=%.9g mean_dy=%.9g mean_dz=%.9g"
          " mean_confidence=%.9g min_z=%.9g max_z=%.9g",
          points, valid, sum[3] / n, sum[4] / n, sum[5] / n, sum[6] / n, min_z, max_z);
   // Every other declared channel (the predictions dx_100ms, ...): its mean over the valid points.
@@ -508,8 +509,7 @@ int main(int argc, char** argv) {
     else if (strcmp(a, "--targets-frame") == 0) {
       ok = ok && (strcmp(v, "reference") == 0 || strcmp(v, "latest") == 0);
       if (ok) targets_frame = strcmp(v, "latest") == 0 ? 1 : 0;
-    }
-    else if (strcmp(a, "--timeout") == 0)
+    } else if (strcmp(a, "--timeout") == 0)
       ok = ok && parseSeconds(v, &timeout_s);
     else if (strcmp(a, "--command") == 0)
       command = v;
@@ -520,9 +520,9 @@ int main(int argc, char** argv) {
     }
     if (!ok) {
       fprintf(stderr, "ros2_subscriber: %s needs %s, not '%s'\n", a,
-              strcmp(a, "--domain") == 0      ? "a domain id 0-232"
-              : strcmp(a, "--timeout") == 0   ? "a number of seconds > 0"
-              : strcmp(a, "--namespace") == 0 ? "a namespace"
+              strcmp(a, "--domain") == 0          ? "a domain id 0-232"
+              : strcmp(a, "--timeout") == 0       ? "a number of seconds > 0"
+              : strcmp(a, "--namespace") == 0     ? "a namespace"
               : strcmp(a, "--targets-frame") == 0 ? "reference or latest"
               : strcmp(a, "--targets") == 0       ? "x,y,z;x,y,z (m)"
                                                   : "a count >= 0",
@@ -567,11 +567,10 @@ int main(int argc, char** argv) {
   if (pp < 0) return fail("cannot join the domain (check CYCLONEDDS_URI)", NULL, pp);
   g_participant = pp;
 
-  const dds_topic_descriptor_t* desc[kTopics] = {&pulsetrack_msgs_msg_dds__Features__desc,
-                                                 &pulsetrack_msgs_msg_dds__Deformation__desc,
-                                                 &pulsetrack_msgs_msg_dds__Health__desc,
-                                                 &sensor_msgs_msg_dds__PointCloud2__desc,
-                                                 &pulsetrack_msgs_msg_dds__TrackedTargets__desc};
+  const dds_topic_descriptor_t* desc[kTopics] = {
+      &pulsetrack_msgs_msg_dds__Features__desc, &pulsetrack_msgs_msg_dds__Deformation__desc,
+      &pulsetrack_msgs_msg_dds__Health__desc, &sensor_msgs_msg_dds__PointCloud2__desc,
+      &pulsetrack_msgs_msg_dds__TrackedTargets__desc};
   // features, deformation: rclcpp::SensorDataQoS() = rmw_qos_profile_sensor_data (best effort,
   // keep last 5, volatile). health: rmw_qos_profile_default made keep last 1 and transient
   // local, i.e. rclcpp::QoS(1).reliable().transient_local(): what a ROS 2 node that wants the

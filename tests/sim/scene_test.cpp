@@ -103,6 +103,45 @@ TEST(SceneFile, MistakesNameFileLineAndKey) {
   expectError(kHead + "fps = { a = 0.2 }\n", "scene.toml:3: fps: expected a number.*got a table");
 }
 
+// A motion that changes (the predictor's cases): rate and amplitude ramps, irregular cycles.
+TEST(SceneFile, AMotionCanChangeRateAndAmplitudeAndBeIrregular) {
+  auto s = parseScene(kHead +
+                          "[[cortex.motion]]\nname = \"breathing\"\namplitude_mm = 0.45\n"
+                          "frequency_hz = 0.2\nfrequency_end_hz = 0.3333\namplitude_end_mm = 0.9\n"
+                          "change_start_s = 40\nchange_duration_s = 30\nirregularity = 0.1\n"
+                          "irregularity_seed = 4\n",
+                      "/x/scene.toml");
+  ASSERT_TRUE(s) << s.error().message;
+  ASSERT_EQ(s->cortex.oscillations.size(), 1U);
+  const Oscillation& o = s->cortex.oscillations[0];
+  EXPECT_EQ(o.frequency_end_hz, 0.3333);
+  EXPECT_EQ(o.amplitude_end_mm, 0.9);
+  EXPECT_EQ(o.irregularity, 0.1);
+  const OscillationClock clock(o, 200.0);
+  EXPECT_DOUBLE_EQ(clock.frequency(10.0), 0.2);
+  EXPECT_DOUBLE_EQ(clock.frequency(55.0), 0.2 + 0.5 * (0.3333 - 0.2));
+  EXPECT_DOUBLE_EQ(clock.frequency(100.0), 0.3333);
+  EXPECT_DOUBLE_EQ(clock.amplitude(100.0), 0.9);
+  // The signal is continuous through the ramp and the irregular cycles' joins.
+  double prev = clock.value(0.0), jump = 0.0;
+  for (double t = 0.001; t < 100.0; t += 0.001) {
+    const double v = clock.value(t);
+    jump = std::max(jump, std::abs(v - prev));
+    prev = v;
+  }
+  EXPECT_LT(jump, 0.01);  // continuous: 1 ms steps of a <= 1.5 Hz, <= 1.5 mm signal
+  // Without changes the closed form is kept (the shipped scenes' truth, bit for bit).
+  Oscillation plain = o;
+  plain.frequency_end_hz = plain.amplitude_end_mm = std::numeric_limits<double>::quiet_NaN();
+  plain.irregularity = 0.0;
+  const OscillationClock plain_clock(plain);
+  EXPECT_EQ(plain_clock.value(12.345), 0.45 * std::sin(2.0 * CV_PI * 0.2 * 12.345));
+  expectError(kHead + "[[cortex.motion]]\nirregularity = 0.9\n",
+              "scene.toml:4: cortex.motion\\[0\\].irregularity: expected a number in \\[0, 0.5\\]");
+  expectError(kHead + "[[cortex.motion]]\nfrequency_end_hz = -1\n",
+              "scene.toml:4: cortex.motion\\[0\\].frequency_end_hz");
+}
+
 // Unequal cameras (issue 14): [camera.right] overrides [camera]'s keys for the right camera only;
 // its mistakes are named like the others'.
 TEST(SceneFile, TheRightCameraCanDiffer) {

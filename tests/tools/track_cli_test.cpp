@@ -1,17 +1,17 @@
 // `pulsetrack track` and `pulsetrack match` as a user runs them: a simulated recording tracked,
 // scored by `pulsetrack evaluate`; an image folder; clear errors.
 
+#include <fmt/format.h>
 #include <gtest/gtest.h>
 
 #include <filesystem>
-#include <fmt/format.h>
+#include <fstream>
 #include <iostream>
 #include <map>
-#include <set>
-#include <sstream>
-#include <fstream>
 #include <opencv2/imgcodecs.hpp>
 #include <regex>
+#include <set>
+#include <sstream>
 
 #include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/record/track_csv.hpp"
@@ -79,6 +79,7 @@ TEST(TrackCli, RecordingTrackedAndScored) {
   for (const record::TrackRow& row : *rows)
     if (row.status == "ok") feature_at[{row.frame, row.id}] = {row.x, row.y, row.z};
   std::vector<int> ids;
+  ids.reserve(first.size());
   for (const auto& [id, p] : first) ids.push_back(id);
   int compared = 0, far = 0;
   double worst = 0, moved = 0;
@@ -137,8 +138,7 @@ TEST(TrackCli, RecordingTrackedAndScored) {
   r = test::run(test::cli() + " track -q --input " + (dir / "rec") + kRois + "--out " +
                 (dir / "track3.csv") + " --targets " + (dir / "bad.csv"));
   EXPECT_EQ(r.exit_code, 1);
-  EXPECT_NE(r.output.find("bad.csv:2: '4,5': expected x,y,z in mm"), std::string::npos)
-      << r.output;
+  EXPECT_NE(r.output.find("bad.csv:2: '4,5': expected x,y,z in mm"), std::string::npos) << r.output;
 }
 
 TEST(TrackCli, ImageFolderAndMatch) {

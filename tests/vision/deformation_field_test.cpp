@@ -5,13 +5,13 @@
 
 #include "pulsetrack/vision/deformation_field.hpp"
 
-#include "pulsetrack/vision/motion_predictor.hpp"
-
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <iostream>
 #include <random>
+
+#include "pulsetrack/vision/motion_predictor.hpp"
 
 namespace pulsetrack::vision {
 namespace {
@@ -139,7 +139,8 @@ TEST(DeformationField, SmoothMotionWithNoiseAndOutliersHeldOutPointsWithin) {
     worst_clean = std::max(worst_clean, heldOut(f_robust, c, t, 19.0).rms);
     // Five features off by 0.5 mm (a match that slid, which the gates let through).
     std::vector<Feature> bad = c.features;
-    for (int k : {3, 17, 42, 66, 90}) bad[static_cast<size_t>(k)].point += cv::Vec3d(0.3, -0.2, 0.35);
+    for (int k : {3, 17, 42, 66, 90})
+      bad[static_cast<size_t>(k)].point += cv::Vec3d(0.3, -0.2, 0.35);
     ASSERT_TRUE(f_robust.update(bad, false, 1));
     ASSERT_TRUE(f_plain.update(bad, false, 1));
     flagged = std::max(flagged, f_robust.downweighted());
@@ -199,13 +200,12 @@ TEST(DeformationField, HiddenFeaturesAndARedetectionLeaveNoJump) {
     if (c.uv[i][0] < 0) c.features[i].status = FeatureStatus::kOccluded;
   }
   ASSERT_TRUE(field.update(c.features, false, 1));
-  EXPECT_EQ(field.used(), 80 - static_cast<int>(std::count_if(c.uv.begin(), c.uv.end(), [](auto& p) {
-                            return p[0] < 0;
-                          })));
+  EXPECT_EQ(field.used(), 80 - static_cast<int>(std::count_if(c.uv.begin(), c.uv.end(),
+                                                              [](auto& p) { return p[0] < 0; })));
   const Errors hidden = heldOut(field, c, 1.05, 19.0);
-  EXPECT_LT(hidden.rms, 0.05);  // the hidden half extrapolated, as far as it reaches
-  EXPECT_GT(hidden.beyond, 10);  // the far side of the hidden half: no answer
-  EXPECT_GT(hidden.n, hidden.beyond);    // the visible half and the hidden edge near it
+  EXPECT_LT(hidden.rms, 0.05);         // the hidden half extrapolated, as far as it reaches
+  EXPECT_GT(hidden.beyond, 10);        // the far side of the hidden half: no answer
+  EXPECT_GT(hidden.n, hidden.beyond);  // the visible half and the hidden edge near it
   // Confidence: high among the visible, low on the hidden side's far edge.
   EXPECT_GT(field.at(c.surface.rest(12, 0)).confidence, 0.9);
   EXPECT_LT(field.at(c.surface.rest(-19, 0)).confidence, 0.5);
@@ -316,8 +316,8 @@ TEST(DeformationField, TheGridIsPredictedWithTheMeansWeights) {
     }
   }
   const double rel = std::sqrt(em / eh);
-  std::cout << "grid predicted 100 ms ahead in " << predicted_pairs
-            << " pairs: relative RMS " << rel << " (against holding the field)\n";
+  std::cout << "grid predicted 100 ms ahead in " << predicted_pairs << " pairs: relative RMS "
+            << rel << " (against holding the field)\n";
   EXPECT_GT(predicted_pairs, 500);
   EXPECT_LT(rel, 0.4);
 }

@@ -58,8 +58,9 @@ sim::Oscillation& component(Motion& m, const char* name) {
 struct Score {
   std::array<double, kMaxHorizons> model{}, hold{}, linear{}, relative{}, relative_linear{};
   std::array<double, kMaxHorizons> sigma_ratio{};  // stated sigma / actual RMS per axis
-  std::array<double, kMaxHorizons> worst_window{};  // the worst 2 s window's relative RMS after t_change
-  std::array<double, kMaxHorizons> adapted_s{};     // after t_change, until every window <= 0.5
+  std::array<double, kMaxHorizons>
+      worst_window{};  // the worst 2 s window's relative RMS after t_change
+  std::array<double, kMaxHorizons> adapted_s{};  // after t_change, until every window <= 0.5
 };
 
 // Runs the predictor over [0, duration) at 30 Hz; scores from `warmup` on.

@@ -9,8 +9,8 @@
 #include <pthread.h>
 
 #include <atomic>
-#include <iostream>
 #include <cstdlib>
+#include <iostream>
 #include <new>
 
 #include "pulsetrack/drivers/pairing.hpp"
@@ -163,19 +163,26 @@ TEST(TrackerRealtime, TheSessionAllocatesNothingPerPairEvenWithABadRoi) {
     s.render(i, left[static_cast<size_t>(i)], right[static_cast<size_t>(i)]);
   const auto t_ns = [](int i) { return int64_t{i} * 100'000'000; };  // 10 Hz
   DeformationField field(FieldConfig{}, TrackerConfig{}.max_features);
-  int fields = 0;
+  field.enablePrediction(1.0, 100.0);
+  Eigen::MatrixXd predicted;
+  int fields = 0, predictions = 0, grid_predictions = 0;
   const auto run = [&](TrackingSession& session, int from, int to) {
     g_allocations = 0;
     g_locks = 0;
     g_counting = true;
     for (int i = from; i < to; ++i) {
       const auto k = static_cast<size_t>(i);
-      const PairResult& pr =
-          session.process(left[k], right[k], static_cast<uint64_t>(i), t_ns(i));
+      const PairResult& pr = session.process(left[k], right[k], static_cast<uint64_t>(i), t_ns(i));
       if (pr.state == SessionState::kTracking &&
           field.update(pr.features, pr.detected, pr.deformation.detections)) {
         ++fields;
         (void)field.at(field.rest(field.points() / 2));
+        // The prediction: the session's (in process()), and the grid's with its weights.
+        field.record(static_cast<double>(t_ns(i)) * 1e-9);
+        predictions += pr.deformation.prediction.horizons == 3 ? 1 : 0;
+        const std::span<const double> w(pr.deformation.prediction_weights[1].data(),
+                                        static_cast<size_t>(pr.deformation.prediction_order));
+        grid_predictions += field.predict(w, pr.deformation.prediction_step_s, predicted) ? 1 : 0;
       }
       session.afterPublish(left[k], right[k]);
     }
@@ -191,12 +198,15 @@ TEST(TrackerRealtime, TheSessionAllocatesNothingPerPairEvenWithABadRoi) {
     ASSERT_TRUE(field.update(first.features, first.detected, first.deformation.detections));
     const PairResult& second = session.process(left[1], right[1], 1, t_ns(1));  // warm-up
     ASSERT_TRUE(field.update(second.features, second.detected, second.deformation.detections));
+    predicted.setZero(field.points(), 3);  // sized once for the grid, as the daemon does
     const int factorizations = field.factorizations();
     run(session, 2, 12);
     EXPECT_EQ(g_allocations.load(), 0) << "allocations in 10 tracked pairs (and their field)";
     EXPECT_EQ(g_locks.load(), 0);
     EXPECT_TRUE(session.last().deformation.valid);
     EXPECT_EQ(fields, 10);
+    EXPECT_EQ(predictions, 10);
+    EXPECT_GT(grid_predictions, 0);  // the lags reach back far enough after 0.9 s of pairs
     EXPECT_GT(field.points(), 400);
     std::cout << "field: " << field.cols() << "x" << field.rows() << " grid, "
               << field.factorizations() - factorizations << " factorizations in 10 pairs\n";

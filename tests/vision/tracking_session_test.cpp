@@ -12,8 +12,6 @@
 
 #include "pulsetrack/vision/tracking_session.hpp"
 
-#include "pulsetrack/vision/deformation_field.hpp"
-
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -23,6 +21,7 @@
 #include <set>
 
 #include "pulsetrack/sim/scene.hpp"
+#include "pulsetrack/vision/deformation_field.hpp"
 #include "sim/cortex_roi.hpp"
 
 namespace pulsetrack::vision {
@@ -326,7 +325,8 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
     FieldConfig fc;
     fc.smoothing = lambda;
     const FieldScore f = scoreField(recorded, s, config.roi, &fc, 100);
-    std::cout << "  TPS smoothing " << lambda << (lambda == FieldConfig{}.smoothing ? " (default)" : "")
+    std::cout << "  TPS smoothing " << lambda
+              << (lambda == FieldConfig{}.smoothing ? " (default)" : "")
               << (lambda >= 1e6 ? " (affine)" : "") << ": RMS " << f.rms << " mm, max " << f.max
               << ", edge RMS " << f.rms_edge << "; " << f.points << " points scored, "
               << f.below_confidence << " beyond the field's reach\n";

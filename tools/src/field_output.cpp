@@ -106,10 +106,9 @@ vision::Result<std::vector<cv::Vec3d>> readPoints(const std::filesystem::path& p
         continue;  // a header line
       return vision::fail(fmt::format("{}:{}: '{}': expected x,y,z in mm", path.string(), n, line));
     }
-    if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2]) ||
-        cv::norm(p) > 1e5)
-      return vision::fail(fmt::format("{}:{}: '{}': not a point within 100 m", path.string(), n,
-                                      line));
+    if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2]) || cv::norm(p) > 1e5)
+      return vision::fail(
+          fmt::format("{}:{}: '{}': not a point within 100 m", path.string(), n, line));
     out.push_back(p);
   }
   if (out.empty()) return vision::fail(fmt::format("{}: no point in it", path.string()));
@@ -121,8 +120,7 @@ vision::Result<std::vector<cv::Vec3d>> readPoints(const std::filesystem::path& p
 vision::Result<FieldOutput> FieldOutput::open(const std::string& field_csv, int every,
                                               const std::vector<cv::Vec3d>& targets,
                                               const std::string& targets_csv,
-                                              const vision::FieldConfig& config,
-                                              int max_features) {
+                                              const vision::FieldConfig& config, int max_features) {
   FieldOutput o(config, max_features);
   o.every_ = std::max(1, every);
   o.targets_ = targets;
@@ -191,9 +189,9 @@ vision::Result<void> FieldOutput::add(long frame, double t,
           continue;
         }
         const cv::Vec3d d = f.displacement(i), p = f.rest(i) + d;
-        field_out_ << fmt::format("{},{:.6f},{},{},{},{:.5f},{:.5f},{:.5f},{:.5f},{:.5f},{:.5f},{:.3f}\n",
-                                  frame, t, f.signal(), r, c, p[0], p[1], p[2], d[0], d[1], d[2],
-                                  conf);
+        field_out_ << fmt::format(
+            "{},{:.6f},{},{},{},{:.5f},{:.5f},{:.5f},{:.5f},{:.5f},{:.5f},{:.3f}\n", frame, t,
+            f.signal(), r, c, p[0], p[1], p[2], d[0], d[1], d[2], conf);
       }
     }
     if (!field_out_) return vision::fail(fmt::format("{}: write failed", field_path_));
@@ -240,8 +238,8 @@ vision::Result<std::vector<std::string>> FieldOutput::finish() {
   ax.ylabel = "mm";
   static const char* const kNames[5] = {"grid centre", "1/4, 1/4", "1/4, 3/4", "3/4, 1/4",
                                         "3/4, 3/4"};
-  static const cv::Scalar kColours[5] = {{180, 90, 30}, {40, 160, 40}, {30, 30, 200},
-                                         {160, 40, 160}, {20, 140, 200}};
+  static const cv::Scalar kColours[5] = {
+      {180, 90, 30}, {40, 160, 40}, {30, 30, 200}, {160, 40, 160}, {20, 140, 200}};
   for (size_t k = 0; k < series_.at.size(); ++k)
     ax.lines.push_back({series_.t, series_.at[k], kColours[k], kNames[k], 1});
   ax.lines.push_back({series_.t, series_.mean, cv::Scalar(0, 0, 0), "features' mean", 2});

@@ -9,8 +9,8 @@
 #include <filesystem>
 #include <fstream>
 #include <memory>
-#include <optional>
 #include <opencv2/imgcodecs.hpp>
+#include <optional>
 
 #include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/record/track_csv.hpp"
@@ -227,7 +227,8 @@ int runTrack(const TrackArgs& a) {
       const std::filesystem::path p(a.out);
       targets_out = (p.parent_path() / (p.stem().string() + "-targets.csv")).string();
     }
-    auto fo = FieldOutput::open(a.field, a.field_every, targets, targets_out, fc, sc.tracker.max_features);
+    auto fo = FieldOutput::open(a.field, a.field_every, targets, targets_out, fc,
+                                sc.tracker.max_features);
     if (!fo) return commandError("track", fo.error().message);
     field_out.emplace(std::move(*fo));
   }
@@ -240,7 +241,8 @@ int runTrack(const TrackArgs& a) {
     return (p.parent_path() / (p.stem().string() + "-prediction.csv")).string();
   }();
   std::ofstream prediction_out(prediction_path);
-  if (!prediction_out) return commandError("track", fmt::format("{}: cannot write", prediction_path));
+  if (!prediction_out)
+    return commandError("track", fmt::format("{}: cannot write", prediction_path));
   prediction_out << "frame,t,horizon,dx,dy,dz,sigma,model\n";
   long prediction_rows = 0;
   std::vector<double> step_us;
@@ -340,8 +342,8 @@ int runTrack(const TrackArgs& a) {
       "deformation       {} ({} pairs)\n"
       "prediction        {} ({} rows: frame,t,horizon,dx,dy,dz,sigma,model)\n",
       n, initial, session.tracker().okCount(), session.redetections(), pct(0.5), pct(0.99),
-      step_us.empty() ? 0.0 : step_us.back(), a.out, def_path, deformation.size(),
-      prediction_path, prediction_rows);
+      step_us.empty() ? 0.0 : step_us.back(), a.out, def_path, deformation.size(), prediction_path,
+      prediction_rows);
   if (field_out) {
     auto lines = field_out->finish();
     if (!lines) return commandError("track", lines.error().message);

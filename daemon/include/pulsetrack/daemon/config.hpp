@@ -57,7 +57,7 @@ struct DaemonConfig {
   double retry_interval_s = 1.0;    // between detections that found nothing
   double velocity_window_s = 0.25;  // the published velocity's least-squares window
   vision::TrackerConfig tracker;
-  vision::FieldConfig field;  // [field]: the dense deformation field (rt/.../field)
+  vision::FieldConfig field;            // [field]: the dense deformation field (rt/.../field)
   vision::PredictionConfig prediction;  // [prediction]: latency compensation, with deformation
   bool lock_memory = true;
   double deadline_ms = 20.0;

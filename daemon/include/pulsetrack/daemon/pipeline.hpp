@@ -57,8 +57,8 @@ struct TrackingText {
 inline constexpr size_t kMaxTargets = 256;
 struct TargetSet {
   uint32_t set_id = 0;
-  uint8_t frame = 0;                // Targets.msg FRAME_REFERENCE 0, FRAME_LATEST 1
-  std::vector<cv::Vec3d> points;    // mm, capacity kMaxTargets reserved at start
+  uint8_t frame = 0;              // Targets.msg FRAME_REFERENCE 0, FRAME_LATEST 1
+  std::vector<cv::Vec3d> points;  // mm, capacity kMaxTargets reserved at start
 };
 
 // A recording's folder name: RIG-YYYYmmdd-HHMMSS (UTC).
@@ -117,8 +117,7 @@ class Pipeline {
   record::LiveRecorder* recorder_;
   uint64_t recorded_ = UINT64_MAX;  // capture thread: the trigger number of the recording's frame 0
   const dds::Participant& participant_;
-  dds::Writer features_writer_, deformation_writer_, health_writer_, field_writer_,
-      targets_writer_;
+  dds::Writer features_writer_, deformation_writer_, health_writer_, field_writer_, targets_writer_;
   rt::LatestSlot<TargetSet> target_sets_;  // command thread -> publish stage
   rt::LatestSlot<Frame> frames_;
   rt::LatestSlot<TrackResult> results_;
