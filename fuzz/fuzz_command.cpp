@@ -61,8 +61,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     // What is accepted: at most 256 finite points within 100 m, a set number, frame 0 or 1.
     if (points.size() > 256 || t.set_id == 0 || t.frame > 1) __builtin_trap();
     for (const auto& p : points)
-      if (!(std::abs(p.x) <= 100 && std::abs(p.y) <= 100 && std::abs(p.z) <= 100))
-        __builtin_trap();
+      if (!(std::abs(p.x) <= 100 && std::abs(p.y) <= 100 && std::abs(p.z) <= 100)) __builtin_trap();
   } else {
     for (const char ch : why)
       if (ch < 32 || ch >= 127) __builtin_trap();

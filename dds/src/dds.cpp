@@ -78,8 +78,9 @@ Result<Topics> Topics::forNamespace(std::string_view ns) {
     prefix += std::string(ns) + "/";
   }
   prefix += "pulsetrack/";
-  return Topics{prefix + "features", prefix + "deformation", prefix + "health", prefix + "command",
-                prefix + "field", prefix + "targets", prefix + "targets_tracked"};
+  return Topics{prefix + "features",       prefix + "deformation", prefix + "health",
+                prefix + "command",        prefix + "field",       prefix + "targets",
+                prefix + "targets_tracked"};
 }
 
 Entity& Entity::operator=(Entity&& o) noexcept {

@@ -247,7 +247,8 @@ double OscillationClock::value(double t) const {
   }
   const double th = theta(t);
   double s = std::sin(th + o_.phase_rad);
-  for (const Harmonic& h : o_.harmonics) s += h.relative_amplitude * std::sin(h.multiple * th + h.phase_rad);
+  for (const Harmonic& h : o_.harmonics)
+    s += h.relative_amplitude * std::sin(h.multiple * th + h.phase_rad);
   double a = amplitude(t);
   if (!cycle_start_.empty() && t > 0.0) {
     const auto it = std::upper_bound(cycle_start_.begin(), cycle_start_.end(), t);

@@ -61,9 +61,8 @@ void readOscillation(TableReader& r, Oscillation& o) {
   o.change_start_s = r.number("change_start_s", o.change_start_s, 0.0, 1e6);
   o.change_duration_s = r.number("change_duration_s", o.change_duration_s, 0.0, 1e6);
   o.irregularity = r.number("irregularity", o.irregularity, 0.0, 0.5);
-  o.irregularity_seed =
-      static_cast<unsigned>(r.integer("irregularity_seed", static_cast<int>(o.irregularity_seed), 0,
-                                      1'000'000'000));
+  o.irregularity_seed = static_cast<unsigned>(
+      r.integer("irregularity_seed", static_cast<int>(o.irregularity_seed), 0, 1'000'000'000));
   if (const toml::array* hs = r.arrayOfTables("harmonics")) {
     o.harmonics.clear();
     for (size_t i = 0; i < hs->size(); ++i) {

@@ -24,9 +24,10 @@ Result<void> checkFieldConfig(const FieldConfig& c) {
   if (!(c.margin_mm >= 0.0 && c.margin_mm <= 50.0))
     return fail(fmt::format("[field] margin_mm = {}: must be in [0, 50] mm", c.margin_mm));
   if (!(c.smoothing > 0.0 && c.smoothing <= 1e6))
-    return fail(fmt::format("[field] smoothing = {}: must be in (0, 1e6] mm^2 (0 would "
-                            "interpolate every feature's noise and outliers)",
-                            c.smoothing));
+    return fail(
+        fmt::format("[field] smoothing = {}: must be in (0, 1e6] mm^2 (0 would "
+                    "interpolate every feature's noise and outliers)",
+                    c.smoothing));
   if (!(c.huber_k >= 1.0 && c.huber_k <= 100.0))
     return fail(fmt::format("[field] huber_k = {}: must be in [1, 100]", c.huber_k));
   if (c.max_grid_points < 4 || c.max_grid_points > 1'000'000)

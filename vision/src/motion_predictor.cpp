@@ -22,8 +22,8 @@ Result<void> checkPredictionConfig(const PredictionConfig& c) {
   if (!(c.memory_s >= 1.0 && c.memory_s <= 3600.0))
     return fail(fmt::format("[prediction] memory_s = {}: must be in [1, 3600] s", c.memory_s));
   if (!(c.error_memory_s >= 0.5 && c.error_memory_s <= 600.0))
-    return fail(fmt::format("[prediction] error_memory_s = {}: must be in [0.5, 600] s",
-                            c.error_memory_s));
+    return fail(
+        fmt::format("[prediction] error_memory_s = {}: must be in [0.5, 600] s", c.error_memory_s));
   if (!(c.max_rate_hz >= 1.0 && c.max_rate_hz <= 2000.0))
     return fail(fmt::format("[prediction] max_rate_hz = {}: must be in [1, 2000]", c.max_rate_hz));
   return {};
@@ -137,8 +137,8 @@ const Prediction& MotionPredictor::add(double t, const cv::Vec3d& d) noexcept {
       if (p.t > t || !at(p.t, truth)) break;
       const double em = (p.model - truth).dot(p.model - truth);
       const double eh = (p.hold - truth).dot(p.hold - truth);
-      const double a =
-          scored_[kk] == 0 ? 1.0
+      const double a = scored_[kk] == 0
+                           ? 1.0
                            : 1.0 - std::exp(-(p.t - last_scored_t_[kk]) / config_.error_memory_s);
       mse_model_[kk] += a * (em - mse_model_[kk]);
       mse_hold_[kk] += a * (eh - mse_hold_[kk]);
@@ -176,7 +176,8 @@ const Prediction& MotionPredictor::add(double t, const cv::Vec3d& d) noexcept {
     // Predict, and keep it to be scored.
     cv::Vec3d model = d;
     if (have_lags && fitted_[kk] >= order_) {
-      for (int j = 0; j < order_; ++j) model += w_[kk][static_cast<size_t>(j)] * x[static_cast<size_t>(j)];
+      for (int j = 0; j < order_; ++j)
+        model += w_[kk][static_cast<size_t>(j)] * x[static_cast<size_t>(j)];
     }
     if (dt > 0.0 || size_ == 1) {
       const size_t cap = pend.size();

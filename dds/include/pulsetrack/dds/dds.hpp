@@ -30,7 +30,7 @@ inline constexpr const char* kCommandTopic = "rt/pulsetrack/command";
 inline constexpr const char* kFieldTopic = "rt/pulsetrack/field";
 struct Topics {
   std::string features, deformation, health, command;
-  std::string field;  // the dense deformation field, sensor_msgs/PointCloud2
+  std::string field;                     // the dense deformation field, sensor_msgs/PointCloud2
   std::string targets, targets_tracked;  // points a robot wants followed, and the answers
   // The namespace follows ROS 2's rules for names: segments of letters, digits and underscores
   // separated by '/', none starting with a digit; a leading '/' is allowed (ROS 2's absolute

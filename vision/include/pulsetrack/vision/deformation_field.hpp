@@ -41,10 +41,10 @@ namespace pulsetrack::vision {
 
 struct FieldConfig {
   bool enabled = true;
-  double spacing_mm = 1.0;   // the grid's
-  double margin_mm = 2.0;    // the grid reaches this far beyond the reference features
+  double spacing_mm = 1.0;    // the grid's
+  double margin_mm = 2.0;     // the grid reaches this far beyond the reference features
   double smoothing = 1000.0;  // TPS lambda (mm^2): 0 interpolates, large tends to the affine fit
-  double huber_k = 3.0;      // residuals beyond k x the median residual are down-weighted
+  double huber_k = 3.0;       // residuals beyond k x the median residual are down-weighted
   int max_grid_points = 16384;
   // Confidence: 1 within one typical feature spacing of an ok feature, falling linearly to 0 at
   // `reach` spacings; beyond it a grid point is invalid (NaN in the point cloud).
@@ -119,13 +119,13 @@ class DeformationField {
  private:
   struct Node {
     int id = 0;
-    size_t fidx = 0;          // the feature's index in this pair's span
-    cv::Vec2d c{0, 0};        // plane coordinates of the reference position
+    size_t fidx = 0;           // the feature's index in this pair's span
+    cv::Vec2d c{0, 0};         // plane coordinates of the reference position
     cv::Vec3d delta{0, 0, 0};  // added to point - point0
   };
   void start(std::span<const Feature> features);
   void rebuild(std::span<const Feature> features);  // new node set (allocates)
-  void setNodes(std::vector<Node> next);              // the system's and the grid's basis
+  void setNodes(std::vector<Node> next);            // the system's and the grid's basis
   [[nodiscard]] cv::Vec2d plane(const cv::Vec3d& p) const noexcept;
   [[nodiscard]] cv::Vec3d evaluate(const cv::Vec2d& c) const noexcept;
   void solve(std::span<const Feature> features) noexcept;

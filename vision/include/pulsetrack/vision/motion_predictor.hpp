@@ -35,11 +35,11 @@ inline constexpr int kMaxOrder = 32;
 struct PredictionConfig {
   bool enabled = true;
   std::vector<double> horizons_s{0.05, 0.1, 0.2};
-  double step_s = 0.05;        // the lags' spacing
-  int order = 16;              // lags: the history used is order x step_s
-  double memory_s = 20.0;      // the fit's forgetting time constant
+  double step_s = 0.05;         // the lags' spacing
+  int order = 16;               // lags: the history used is order x step_s
+  double memory_s = 20.0;       // the fit's forgetting time constant
   double error_memory_s = 5.0;  // the error estimates' (and the guard's)
-  double max_rate_hz = 500.0;  // the history's capacity: pairs per second at most
+  double max_rate_hz = 500.0;   // the history's capacity: pairs per second at most
 };
 // The config's own check: names the key ([prediction] ...).
 Result<void> checkPredictionConfig(const PredictionConfig& c);
