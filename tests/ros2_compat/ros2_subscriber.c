@@ -471,6 +471,31 @@ static int fail(const char* what, const char* topic, dds_return_t rc) {
   return 2;
 }
 
+// A writer on `topic` with `qos` (deleted here), once a reader has matched it (a reliable
+// volatile sample written before that is not delivered). 0, or the exit code (named on stderr).
+static int matchedWriter(dds_entity_t pp, const dds_topic_descriptor_t* desc, const char* topic,
+                         dds_qos_t* qos, int64_t until, dds_entity_t* out) {
+  const dds_entity_t tp = dds_create_topic(pp, desc, topic, NULL, NULL);
+  if (tp < 0) {
+    dds_delete_qos(qos);
+    return fail("cannot create the topic", topic, tp);
+  }
+  const dds_entity_t w = dds_create_writer(pp, tp, qos, NULL);
+  dds_delete_qos(qos);
+  if (w < 0) return fail("cannot create a writer on", topic, w);
+  dds_publication_matched_status_t m;
+  memset(&m, 0, sizeof m);
+  while (!g_stop && monotonicNs() < until &&
+         (dds_get_publication_matched_status(w, &m) != DDS_RETCODE_OK || m.current_count == 0))
+    dds_sleepfor(DDS_MSECS(10));
+  if (m.current_count == 0) {
+    fprintf(stderr, "ros2_subscriber: no reader matched on %s\n", topic);
+    return 1;
+  }
+  *out = w;
+  return 0;
+}
+
 int main(int argc, char** argv) {
   uint32_t domain = UINT32_MAX;
   const char* ns = "";
@@ -603,23 +628,11 @@ int main(int argc, char** argv) {
   if (command != NULL) {
     char ctopic[256];
     snprintf(ctopic, sizeof ctopic, "rt/%s%spulsetrack/command", ns, ns[0] ? "/" : "");
-    const dds_entity_t tp =
-        dds_create_topic(pp, &pulsetrack_msgs_msg_dds__Command__desc, ctopic, NULL, NULL);
-    if (tp < 0) return fail("cannot create the topic", ctopic, tp);
-    dds_qos_t* qos = ros2Qos(10, true, false);
-    const dds_entity_t w = dds_create_writer(pp, tp, qos, NULL);
-    dds_delete_qos(qos);
-    if (w < 0) return fail("cannot create a writer on", ctopic, w);
-    dds_publication_matched_status_t m;
-    memset(&m, 0, sizeof m);
     const int64_t until = monotonicNs() + (int64_t)(timeout_s * 1e9);
-    while (!g_stop && monotonicNs() < until &&
-           (dds_get_publication_matched_status(w, &m) != DDS_RETCODE_OK || m.current_count == 0))
-      dds_sleepfor(DDS_MSECS(10));
-    if (m.current_count == 0) {
-      fprintf(stderr, "ros2_subscriber: no reader matched on %s\n", ctopic);
-      return 1;
-    }
+    dds_entity_t w = 0;
+    const int rc_w = matchedWriter(pp, &pulsetrack_msgs_msg_dds__Command__desc, ctopic,
+                                   ros2Qos(10, true, false), until, &w);
+    if (rc_w != 0) return rc_w;
     pulsetrack_msgs_msg_dds__Command_ c;
     memset(&c, 0, sizeof c);
     c.rig_id = (char*)"";
@@ -648,23 +661,11 @@ int main(int argc, char** argv) {
       fprintf(stderr, "ros2_subscriber: --targets '%s': expected x,y,z;x,y,z (m)\n", targets_text);
       return 2;
     }
-    const dds_entity_t tp =
-        dds_create_topic(pp, &pulsetrack_msgs_msg_dds__Targets__desc, ttopic, NULL, NULL);
-    if (tp < 0) return fail("cannot create the topic", ttopic, tp);
-    dds_qos_t* qos = ros2Qos(1, true, true);
-    const dds_entity_t w = dds_create_writer(pp, tp, qos, NULL);
-    dds_delete_qos(qos);
-    if (w < 0) return fail("cannot create a writer on", ttopic, w);
-    dds_publication_matched_status_t m;
-    memset(&m, 0, sizeof m);
     const int64_t until = monotonicNs() + (int64_t)(timeout_s * 1e9);
-    while (!g_stop && monotonicNs() < until &&
-           (dds_get_publication_matched_status(w, &m) != DDS_RETCODE_OK || m.current_count == 0))
-      dds_sleepfor(DDS_MSECS(10));
-    if (m.current_count == 0) {
-      fprintf(stderr, "ros2_subscriber: no reader matched on %s\n", ttopic);
-      return 1;
-    }
+    dds_entity_t w = 0;
+    const int rc_w = matchedWriter(pp, &pulsetrack_msgs_msg_dds__Targets__desc, ttopic,
+                                   ros2Qos(1, true, true), until, &w);
+    if (rc_w != 0) return rc_w;
     // The answers' reader first matched to the daemon's writer (best effort: a writer sends
     // only to readers it knows), so that the first answer is not missed.
     if (reader[kTracked] > 0) {

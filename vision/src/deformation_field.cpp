@@ -6,6 +6,8 @@
 #include <cmath>
 #include <limits>
 
+#include "ring_bracket.hpp"
+
 namespace pulsetrack::vision {
 
 namespace {
@@ -411,26 +413,13 @@ void DeformationField::record(double t_s) noexcept {
 }
 
 bool DeformationField::solutionAt(double t, Eigen::MatrixXd& w) const noexcept {
-  if (hist_size_ == 0) return false;
-  const size_t cap = hist_t_.size();
-  const auto idx = [&](size_t i) { return (hist_head_ + i) % cap; };
-  if (t < hist_t_[idx(0)] - 1e-12 || t > hist_t_[idx(hist_size_ - 1)] + 1e-12) return false;
-  size_t lo = 0, hi = hist_size_ - 1;
-  while (lo < hi) {
-    const size_t mid = (lo + hi) / 2;
-    if (hist_t_[idx(mid)] < t)
-      lo = mid + 1;
-    else
-      hi = mid;
-  }
-  const size_t b = idx(lo);
-  if (lo == 0 || hist_t_[b] <= t) {
+  size_t a = 0, b = 0;
+  double f = 0.0;
+  if (!ringBracket(hist_t_, hist_head_, hist_size_, t, a, b, f)) return false;
+  if (a == b)
     w = hist_w_[b];
-    return true;
-  }
-  const size_t a = idx(lo - 1);
-  const double f = (t - hist_t_[a]) / (hist_t_[b] - hist_t_[a]);
-  w = (1.0 - f) * hist_w_[a] + f * hist_w_[b];
+  else
+    w = (1.0 - f) * hist_w_[a] + f * hist_w_[b];
   return true;
 }
 

@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "ring_bracket.hpp"
+
 namespace pulsetrack::vision {
 
 Result<void> checkPredictionConfig(const PredictionConfig& c) {
@@ -75,26 +77,10 @@ double MotionPredictor::holdRms(int k) const noexcept {
 }
 
 bool MotionPredictor::at(double t, cv::Vec3d& d) const noexcept {
-  if (size_ == 0) return false;
-  const size_t cap = t_.size();
-  const auto idx = [&](size_t i) { return (head_ + i) % cap; };  // i-th oldest
-  if (t < t_[idx(0)] - 1e-12 || t > t_[idx(size_ - 1)] + 1e-12) return false;
-  size_t lo = 0, hi = size_ - 1;  // the first with time >= t
-  while (lo < hi) {
-    const size_t mid = (lo + hi) / 2;
-    if (t_[idx(mid)] < t)
-      lo = mid + 1;
-    else
-      hi = mid;
-  }
-  const size_t b = idx(lo);
-  if (lo == 0 || t_[b] <= t) {
-    d = d_[b];
-    return true;
-  }
-  const size_t a = idx(lo - 1);
-  const double f = (t - t_[a]) / (t_[b] - t_[a]);
-  d = d_[a] + f * (d_[b] - d_[a]);
+  size_t a = 0, b = 0;
+  double f = 0.0;
+  if (!ringBracket(t_, head_, size_, t, a, b, f)) return false;
+  d = a == b ? d_[b] : d_[a] + f * (d_[b] - d_[a]);
   return true;
 }
 
