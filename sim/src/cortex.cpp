@@ -275,6 +275,14 @@ cv::Vec3d CortexScene::displacement(double u, double v, double t) const {
     const double r2 = (u * u + v * v) / (radius * radius);
     const double sink = spec_.sag.depth_mm * (1.0 - std::exp(-t / spec_.sag.time_constant_s));
     d[2] -= sink * (1.0 - 0.5 * r2);
+    if (spec_.sag.rotation_deg != 0.0) {
+      const double angle =
+          spec_.sag.rotation_deg * CV_PI / 180.0 * (1.0 - std::exp(-t / spec_.sag.time_constant_s));
+      cv::Matx33d rot;
+      cv::Rodrigues(cv::normalize(spec_.sag.rotation_axis) * angle, rot);
+      const cv::Vec3d rest = restPosition(u, v);
+      d = rot * (rest + d) - rest;
+    }
   }
   return d;
 }
@@ -309,9 +317,22 @@ bool CortexScene::materialAt(const vision::StereoRig& rig, const cv::Vec2d& px, 
   return std::hypot(u, v) <= spec_.radius_mm;
 }
 
+double CortexScene::instrumentTime(double t) const {
+  const Instrument& in = spec_.instrument;
+  if (!in.enabled || t < in.start_s) return -1.0;
+  double local = t - in.start_s;
+  if (in.period_s > 0.0) {
+    const double k = std::floor(local / in.period_s);
+    if (in.repeats > 0 && k >= in.repeats) return -1.0;
+    local -= k * in.period_s;
+  }
+  return local <= in.duration_s ? local : -1.0;
+}
+
 cv::Vec3d CortexScene::instrumentTip(double t) const {
   const Instrument& in = spec_.instrument;
-  const double phase = std::clamp((t - in.start_s) / in.duration_s, 0.0, 1.0);
+  const double local = instrumentTime(t);
+  const double phase = local < 0.0 ? 0.0 : std::clamp(local / in.duration_s, 0.0, 1.0);
   const double ramp = (1.0 - in.hold_fraction) / 2.0;
   const double s = phase < ramp         ? std::sin(CV_PI / 2.0 * phase / ramp)
                    : phase > 1.0 - ramp ? std::sin(CV_PI / 2.0 * (1.0 - phase) / ramp)
@@ -322,7 +343,7 @@ cv::Vec3d CortexScene::instrumentTip(double t) const {
 
 bool CortexScene::occluded(const cv::Vec3d& p, const cv::Vec3d& camera_centre, double t) const {
   const Instrument& in = spec_.instrument;
-  if (!in.enabled || t < in.start_s || t > in.start_s + in.duration_s) return false;
+  if (instrumentTime(t) < 0.0) return false;
   const cv::Vec3d tip = r_cs_ * instrumentTip(t) + t_cs_;
   const cv::Vec3d end = tip + r_cs_ * cv::Vec3d(-in.length_mm, 0, 0);
   return segmentHitsCylinder(camera_centre, p, tip, end, in.radius_mm);
@@ -534,7 +555,7 @@ void CortexScene::render(const vision::StereoRig& rig, double t, Rasterizer& ras
   const double k = spec_.texture_px_per_mm;
   const double extent = spec_.radius_mm + 3.0;
   const Instrument& in = spec_.instrument;
-  const bool tool_on = in.enabled && t >= in.start_s && t <= in.start_s + in.duration_s;
+  const bool tool_on = instrumentTime(t) >= 0.0;
   const cv::Vec3d tip_c = r_cs_ * instrumentTip(t) + t_cs_;
 
   for (int cam = 0; cam < 2; ++cam) {

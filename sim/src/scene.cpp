@@ -115,6 +115,12 @@ void readCortex(TableReader& r, CortexSpec& c) {
     c.sag.enabled = sr.boolean("enabled", true);
     c.sag.depth_mm = sr.number("depth_mm", c.sag.depth_mm, 0.0, 30.0);
     c.sag.time_constant_s = sr.number("time_constant_s", c.sag.time_constant_s, 1.0, 1e6);
+    c.sag.rotation_deg = sr.number("rotation_deg", c.sag.rotation_deg, -45.0, 45.0);
+    const auto axis = sr.numbers(
+        "rotation_axis", {c.sag.rotation_axis[0], c.sag.rotation_axis[1], c.sag.rotation_axis[2]},
+        3, 3, -1e3, 1e3);
+    c.sag.rotation_axis = {axis[0], axis[1], axis[2]};
+    sr.require("rotation_axis", cv::norm(c.sag.rotation_axis) > 1e-9, "must not be zero");
     sr.finish();
   }
   if (const toml::table* t = r.table("instrument")) {
@@ -131,6 +137,10 @@ void readCortex(TableReader& r, CortexSpec& c) {
     in.hold_fraction = ir.number("hold_fraction", in.hold_fraction, 0.0, 0.95);
     in.to_mm = {to[0], to[1]};
     in.albedo = ir.number("albedo", in.albedo, 0.0, 1.0);
+    in.period_s = ir.number("period_s", in.period_s, 0.0, 1e6);
+    in.repeats = ir.integer("repeats", in.repeats, 0, 1000000);
+    ir.require("period_s", in.period_s == 0.0 || in.period_s >= in.duration_s,
+               "must be 0 (once) or at least duration_s");
     ir.finish();
   }
   if (const toml::table* t = r.table("shadow")) {

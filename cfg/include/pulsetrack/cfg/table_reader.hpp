@@ -128,6 +128,12 @@ class TableReader {
       }
     }
   }
+  // A rule between values: when `ok` is false, the error names the key's line (it must be
+  // present) and says `what`.
+  void require(const char* key, bool ok, const std::string& what) {
+    if (ok) return;
+    if (const toml::node* n = table_.get(key)) fault(n, fmt::format("{}: {}", name(key), what));
+  }
   [[nodiscard]] const std::string& file() const { return file_; }
   std::string* errorSink() const { return error_; }
   [[nodiscard]] std::string child(const char* key) const { return name(key); }

@@ -72,10 +72,14 @@ class OscillationClock {
 };
 
 // Slow brain shift: the surface sinks along -z of {S} by depth_mm * (1 - exp(-t / tau)),
-// more in the centre than at the rim (weight 1 - 0.5 (r / radius)^2).
+// more in the centre than at the rim (weight 1 - 0.5 (r / radius)^2), and turns about
+// rotation_axis (in {S}, through the patch centre) by rotation_deg * (1 - exp(-t / tau)): the
+// whole deformed surface, oscillations included, so the features' views change shape over hours.
 struct Sag {
   double depth_mm = 0.0;
   double time_constant_s = 120.0;
+  double rotation_deg = 0.0;
+  cv::Vec3d rotation_axis{1.0, 0.0, 0.0};  // normalized on use
   bool enabled = false;
 };
 
@@ -94,6 +98,9 @@ struct Instrument {
   // The fraction of the duration the tip rests at to_mm (the rest of it: coming and going,
   // sinusoidal). 0: it turns round at to_mm (a crossing).
   double hold_fraction = 0.0;
+  // Repeated crossings: every period_s from start_s (0: once), `repeats` times (0: for ever).
+  double period_s = 0.0;
+  int repeats = 0;
 };
 
 // A soft shadow band (a hand between lamp and field) sweeping over the field.
@@ -171,6 +178,8 @@ class CortexScene {
   void buildTexture();
   void buildMeshes();
   [[nodiscard]] cv::Vec3d instrumentTip(double t) const;
+  // Time since the start of the instrument's crossing under way at t; negative when none is.
+  [[nodiscard]] double instrumentTime(double t) const;
   void shadeVertices(const vision::CameraModel& cam, const cv::Matx33d& r_xc, const cv::Vec3d& t_xc,
                      const cv::Vec3d& camera_centre, double t);
 
