@@ -1,8 +1,8 @@
 #pragma once
 // DeformationField: how every point of the tracked surface moves, not only the features and
 // their mean. From each pair's tracked features, a smoothing thin-plate spline (TPS) of the
-// displacement over the surface, fitted robustly (IRLS, Huber weights), evaluated on a regular
-// grid and at any point a robot asks about.
+// displacement over the surface, fitted robustly (IRLS, down-weighting outliers), evaluated on a
+// regular grid and at any point a robot asks about.
 //
 // Coordinates. The field is a function of the material point, named by its position in the
 // reference pair (the first pair of the session's signal), in the left camera frame {C}, mm.
@@ -23,10 +23,13 @@
 //
 // Why a smoothing TPS: ~100 scattered features, no grid to choose (a B-spline lattice would need
 // a knot spacing that the features' density varies under), the least bending surface through
-// them with its affine part exact (a uniform or linearly varying motion, as breathing's gradient
-// is, is reproduced without error), and at n = 100 its (n + 3)^2 system costs ~0.1 ms. Measured
-// against the mean displacement and the affine limit (large smoothing) on held-out material
-// points: tests/vision/deformation_field_test.cpp, README.
+// them, and at n = 100 its (n + 6)^2 system costs ~0.1 ms. Its polynomial part is quadratic,
+// not the usual affine, and is not smoothed: a uniform or linearly varying motion (breathing's
+// gradient) and a bowl (brain shift's sag, deeper in the middle) are reproduced without error.
+// With the affine part, smoothing flattened a 10 mm sag: 1.15 mm RMS on held-out points after
+// cortex-1h-compressed's shift, 0.052 mm with the quadratic (tests/vision/long_tracking_test).
+// Measured against the mean displacement and the affine limit (large smoothing) on held-out
+// material points: tests/vision/deformation_field_test.cpp, README.
 
 #include <Eigen/Dense>
 #include <cstdint>
@@ -65,7 +68,8 @@ class DeformationField {
 
   // One pair's tracked features, as TrackingSession::process() returned them (`detected`: the
   // pair (re)detected; `detections`: the session's count, 1 at a fresh detection, which starts
-  // a new signal). Returns whether the field holds for this pair (>= 3 ok features).
+  // a new signal). Returns whether the field holds for this pair (>= 6 ok features: the
+  // spline's quadratic part needs them).
   bool update(std::span<const Feature> features, bool detected, uint32_t detections) noexcept;
   void reset() noexcept;
 
