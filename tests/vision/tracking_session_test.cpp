@@ -4,8 +4,8 @@
 // policy (stop, start, ROI changes, redetect).
 //
 // The truth: for each feature, its material point (the surface point under its pixel when it was
-// detected) moved by the scene's true motion; the true deformation is the same mean over the
-// same ok features, made continuous the same way (an independent implementation here). So the
+// detected) moved by the scene's true motion; the true deformation is the session's rule applied
+// to those true displacements (session_truth.hpp, an independent implementation). So the
 // error is the measurement's, not the definition's. Also printed: the error against the mean
 // of a fixed set of material points (the first detection's), which the continuity trades for
 // having no jumps.
@@ -23,6 +23,7 @@
 #include "pulsetrack/sim/scene.hpp"
 #include "pulsetrack/vision/deformation_field.hpp"
 #include "sim/cortex_roi.hpp"
+#include "vision/session_truth.hpp"
 
 namespace pulsetrack::vision {
 namespace {
@@ -56,27 +57,8 @@ struct FieldScore {
 FieldScore scoreField(const std::vector<Recorded>& pairs, const sim::StereoSimulator& s,
                       const Roi& roi, const FieldConfig* config, int max_features) {
   const sim::CortexScene& scene = *s.cortex();
-  const double t0 = pairs.front().t;
-  struct Held {
-    cv::Vec2d uv;
-    cv::Vec3d p0;
-    bool edge;
-  };
-  std::vector<Held> held;
-  const cv::Rect& r = roi.left;
-  for (int j = 0; j <= 14; ++j) {
-    for (int i = 0; i <= 14; ++i) {
-      const cv::Vec2d px(r.x + r.width * i / 14.0, r.y + r.height * j / 14.0);
-      cv::Vec2d uv;
-      if (!scene.materialAt(s.rig(), px, t0, uv)) continue;
-      const cv::Vec3d p0 = scene.position(uv[0], uv[1], t0);
-      const bool near_feature =
-          std::any_of(pairs.front().features.begin(), pairs.front().features.end(),
-                      [&](const Feature& f) { return cv::norm(f.point0 - p0) < 1.0; });
-      if (near_feature) continue;
-      held.push_back({uv, p0, i == 0 || j == 0 || i == 14 || j == 14});
-    }
-  }
+  const std::vector<test::HeldOutPoint> held =
+      test::heldOutPoints(s, roi.left, pairs.front().t, pairs.front().features);
   DeformationField field(config != nullptr ? *config : FieldConfig{}, max_features);
   FieldScore sc;
   double s2 = 0, s2e = 0;
@@ -84,7 +66,7 @@ FieldScore scoreField(const std::vector<Recorded>& pairs, const sim::StereoSimul
   for (const Recorded& rec : pairs) {
     if (config != nullptr && !field.update(rec.features, rec.detected, rec.detections)) continue;
     ++sc.pairs;
-    for (const Held& h : held) {
+    for (const test::HeldOutPoint& h : held) {
       const cv::Vec3d truth = scene.position(h.uv[0], h.uv[1], rec.t);
       cv::Vec3d est = h.p0 + rec.mean_displacement;
       if (config != nullptr) {
@@ -110,12 +92,6 @@ FieldScore scoreField(const std::vector<Recorded>& pairs, const sim::StereoSimul
   return sc;
 }
 
-struct Truth {
-  cv::Vec2d uv;
-  double t_ref = 0;  // the time of its reference position (detection)
-  bool found = false;
-};
-
 TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetection) {
   auto spec = sim::loadScene(kScene);
   ASSERT_TRUE(spec) << spec.error().message;
@@ -126,14 +102,12 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
   TrackingSession session(s.rig(), config);
   // 18-31 s: the instrument crosses at 20-24 s; a re-detection is asked for at 27 s.
   const int first = 180, last = 310, redetect_at = 270;
-  std::map<int, Truth> truth;
-  // The independent truth signal: the same features' true displacements, made continuous.
-  std::map<int, cv::Vec3d> prev_true_d;  // id -> true displacement at the last valid pair
-  cv::Vec3d true_out(0, 0, 0), true_offset(0, 0, 0);
-  bool have_true = false;
+  test::SessionTruth truth(s);
+  std::set<int> prev_ok_ids;
+  int changes = 0;  // pairs whose ok set differs from the last pair's
   std::vector<double> err_d, err_v, sigma_d, sigma_v;
   double worst_jump = 0.0, fixed_set_err2 = 0.0;
-  int changes = 0, redetections_seen = 0, pairs = 0, fixed_set_n = 0;
+  int redetections_seen = 0, pairs = 0, fixed_set_n = 0;
   std::vector<cv::Vec2d> first_set;  // the first detection's material points
   std::vector<Recorded> recorded;
   double t_first = 0.0;
@@ -150,83 +124,31 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
     ASSERT_EQ(pr.state, SessionState::kTracking) << "pair " << i << ": " << session.reason();
     ++pairs;
     const Deformation& d = pr.deformation;
-    // The features' true displacements, for the features ok now (before a re-detection in this
-    // pair replaced them: the session measured this pair with the features of the last one, so
-    // the truth uses the previous pair's features when this pair re-detected).
-    std::map<int, cv::Vec3d> true_d;
+    if (pr.detected && i != first) ++redetections_seen;
+    ASSERT_TRUE(d.valid) << "pair " << i;
+    ASSERT_TRUE(truth.update(pr, t)) << "pair " << i;
+    const cv::Vec3d true_out = truth.displacement();
+    std::set<int> ok_ids;
+    for (const Feature& f : pr.features)
+      if (f.status == FeatureStatus::kOk) ok_ids.insert(f.id);
+    if (pairs > 1 && ok_ids != prev_ok_ids) ++changes;
+    prev_ok_ids = std::move(ok_ids);
+    // The true velocity at the published delay (central difference, 1 ms), over the features
+    // the signal is made of.
     cv::Vec3d true_vel(0, 0, 0);
     int nv = 0;
-    const auto add_truth = [&](int id, const cv::Vec2d& px, const FeatureStatus st) {
-      Truth& tr = truth[id];
-      if (!tr.found) {
-        tr.found = scene.materialAt(s.rig(), px, t, tr.uv);
-        tr.t_ref = t;
-      }
-      if (st != FeatureStatus::kOk || !tr.found) return;
-      const cv::Vec3d now = scene.position(tr.uv[0], tr.uv[1], t);
-      true_d[id] = now - scene.position(tr.uv[0], tr.uv[1], tr.t_ref);
-      // The true velocity at the published delay (central difference, 1 ms).
+    for (const auto& [id, unused] : truth.featureDisplacements()) {
+      const test::MaterialTruth* tr = truth.find(id);
       const double tv = t - d.velocity_delay_s;
-      true_vel += (scene.position(tr.uv[0], tr.uv[1], tv + 1e-3) -
-                   scene.position(tr.uv[0], tr.uv[1], tv - 1e-3)) /
+      true_vel += (scene.position(tr->uv[0], tr->uv[1], tv + 1e-3) -
+                   scene.position(tr->uv[0], tr->uv[1], tv - 1e-3)) /
                   2e-3;
       ++nv;
-    };
-    if (pr.detected && i != first) {
-      ++redetections_seen;
-    }
-    // A re-detection fills: the features there were keep their ids and references (they were
-    // measured in this pair); the new ones start here.
-    std::set<int> new_ids;
-    for (const Feature& f : pr.features) {
-      if (pr.detected && i != first && !truth.contains(f.id)) {
-        new_ids.insert(f.id);
-        continue;
-      }
-      add_truth(f.id, f.left, f.status);
-    }
-    ASSERT_TRUE(d.valid) << "pair " << i;
-    ASSERT_FALSE(true_d.empty()) << "pair " << i;
-    // The continuous truth, by the session's rule written again.
-    cv::Vec3d mean(0, 0, 0), inc(0, 0, 0);
-    int common = 0;
-    bool changed = prev_true_d.size() != true_d.size();
-    for (const auto& [id, v] : true_d) {
-      mean += v;
-      const auto p = prev_true_d.find(id);
-      if (p == prev_true_d.end()) {
-        changed = true;
-        continue;
-      }
-      inc += v - p->second;
-      ++common;
-    }
-    mean /= static_cast<double>(true_d.size());
-    if (!have_true) {
-      true_offset = -mean;
-      have_true = true;
-    } else if (changed) {
-      ASSERT_GT(common, 0) << "pair " << i;
-      true_offset = true_out + inc / common - mean;
-      ++changes;
-    }
-    true_out = mean + true_offset;
-    prev_true_d = true_d;
-    if (pr.detected) {  // the new features' reference is this pair: their displacement is 0
-      for (const Feature& f : pr.features) {
-        if (f.status == FeatureStatus::kOk && new_ids.contains(f.id))
-          prev_true_d[f.id] = cv::Vec3d(0, 0, 0);
-        Truth& tr = truth[f.id];
-        if (!tr.found) {
-          tr.found = scene.materialAt(s.rig(), f.left, t, tr.uv);
-          tr.t_ref = t;
-        }
-      }
     }
     if (i == first) {
       t_first = t;
       for (const Feature& f : pr.features)
-        if (truth[f.id].found) first_set.push_back(truth[f.id].uv);
+        if (const test::MaterialTruth* tr = truth.find(f.id)) first_set.push_back(tr->uv);
     }
     // Errors: displacement, velocity at the published delay; the step against the true step.
     err_d.push_back(cv::norm(d.displacement - true_out) / std::sqrt(3.0));

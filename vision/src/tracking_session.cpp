@@ -38,6 +38,17 @@ TrackingSession::TrackingSession(const StereoRig& rig, const SessionConfig& conf
   const auto n = static_cast<size_t>(std::max(1, config_.tracker.max_features));
   prev_ok_.assign(n, 0);
   prev_d_.assign(n, cv::Vec3d(0, 0, 0));
+  ids_.assign(n, -1);
+  dhat_.assign(n, cv::Vec3d(0, 0, 0));
+  birth_.assign(n, cv::Vec3d(0, 0, 0));
+  scratch_ok_.assign(n, 0);
+  scratch_d_.assign(3 * n, cv::Vec3d(0, 0, 0));
+  neighbours_ = static_cast<size_t>(std::clamp(config_.tracker.reacquire_neighbours, 1, 16));
+  nb_idx_.assign(n * neighbours_, -1);
+  nb_d_.assign(n * neighbours_, cv::Vec3d(0, 0, 0));
+  scratch_nb_idx_.assign(n * neighbours_, -1);
+  scratch_nb_d_.assign(n * neighbours_, cv::Vec3d(0, 0, 0));
+  old_to_new_.assign(n, -1);
   ring_.assign(kRing, Sample{0.0, {0, 0, 0}});
   setRoi(config_.roi, config_.depth_tolerance_mm);
 }
@@ -95,8 +106,8 @@ void TrackingSession::stop() {
 
 void TrackingSession::resetSignal() noexcept {
   have_output_ = false;
-  restart_ = true;
   offset_ = output_ = cv::Vec3d(0, 0, 0);
+  members_ = 0;
   ring_size_ = 0;
   detections_ = 0;
 }
@@ -104,12 +115,68 @@ void TrackingSession::resetSignal() noexcept {
 void TrackingSession::markReference() noexcept {
   const auto feats = tracker_.features();
   const size_t n = std::min(feats.size(), prev_ok_.size());
-  std::fill(prev_ok_.begin(), prev_ok_.end(), 0);
-  for (size_t i = 0; i < n; ++i) {
-    prev_ok_[i] = feats[i].status == FeatureStatus::kOk ? 1 : 0;
-    prev_d_[i] = feats[i].point - feats[i].point0;
+  if (!have_output_) {  // a fresh detection: every feature's displacement starts at zero here
+    for (size_t i = 0; i < n; ++i) {
+      ids_[i] = feats[i].id;
+      prev_ok_[i] = feats[i].status == FeatureStatus::kOk ? 1 : 0;
+      prev_d_[i] = feats[i].point - feats[i].point0;
+      birth_[i] = -prev_d_[i];
+      dhat_[i] = cv::Vec3d(0, 0, 0);
+    }
+    std::fill(nb_idx_.begin(), nb_idx_.end(), -1);
+    members_ = n;
+    return;
   }
-  restart_ = true;  // the next deformation rebases on the features in common
+  // A re-detection: the features kept (by id) keep their state; a new one enters at the set's
+  // mean displacement (its own is zero: its reference is now), so that it adds no step; the
+  // retired ones leave, and the offset takes up the change of the mean so nothing jumps.
+  cv::Vec3d old_mean(0, 0, 0);
+  std::fill(old_to_new_.begin(), old_to_new_.end(), -1);
+  for (size_t i = 0; i < members_; ++i) old_mean += dhat_[i];
+  if (members_ > 0) old_mean /= static_cast<double>(members_);
+  cv::Vec3d* const prev_d = scratch_d_.data();
+  cv::Vec3d* const dhat = prev_d + prev_ok_.size();
+  cv::Vec3d* const birth = dhat + prev_ok_.size();
+  cv::Vec3d new_mean(0, 0, 0);
+  for (size_t j = 0; j < n; ++j) {
+    const Feature& f = feats[j];
+    const cv::Vec3d own = f.point - f.point0;
+    const bool ok = f.status == FeatureStatus::kOk;
+    size_t i = 0;
+    while (i < members_ && ids_[i] != f.id) ++i;
+    if (i < members_) old_to_new_[i] = static_cast<int>(j);
+    if (i < members_) {
+      std::copy_n(nb_idx_.begin() + static_cast<long>(i * neighbours_), neighbours_,
+                  scratch_nb_idx_.begin() + static_cast<long>(j * neighbours_));
+      std::copy_n(nb_d_.begin() + static_cast<long>(i * neighbours_), neighbours_,
+                  scratch_nb_d_.begin() + static_cast<long>(j * neighbours_));
+      birth[j] = birth_[i];
+      dhat[j] = ok ? birth_[i] + own : dhat_[i];
+      prev_d[j] = ok ? own : prev_d_[i];
+    } else {
+      birth[j] = old_mean - own;
+      dhat[j] = old_mean;
+      prev_d[j] = own;
+      std::fill_n(scratch_nb_idx_.begin() + static_cast<long>(j * neighbours_), neighbours_, -1);
+    }
+    scratch_ok_[j] = ok ? 1 : 0;
+    new_mean += dhat[j];
+  }
+  for (size_t j = 0; j < n; ++j) {
+    ids_[j] = feats[j].id;
+    prev_ok_[j] = scratch_ok_[j];
+    prev_d_[j] = prev_d[j];
+    dhat_[j] = dhat[j];
+    birth_[j] = birth[j];
+  }
+  // The hidden features' neighbours, renumbered (a retired one drops out).
+  for (size_t k = 0; k < n * neighbours_; ++k) {
+    const int old = scratch_nb_idx_[k];
+    nb_idx_[k] = old >= 0 ? old_to_new_[static_cast<size_t>(old)] : -1;
+    nb_d_[k] = scratch_nb_d_[k];
+  }
+  members_ = n;
+  if (n > 0) offset_ += old_mean - new_mean / static_cast<double>(n);
 }
 
 bool TrackingSession::detect(const cv::Mat& left, const cv::Mat& right, bool redetection) {
@@ -202,11 +269,38 @@ const PairResult& TrackingSession::process(const cv::Mat& left, const cv::Mat& r
   return result_;
 }
 
+void TrackingSession::hideFrom(size_t i, size_t n) noexcept {
+  // The nearest features that were ok in the last pair (insertion into a short list), with their
+  // own displacements then, when feature i was last seen too.
+  const cv::Vec3d at = tracker_.features()[i].point;
+  const auto feats = tracker_.features();
+  int* const idx = nb_idx_.data() + i * neighbours_;
+  cv::Vec3d* const snap = nb_d_.data() + i * neighbours_;
+  std::array<double, 16> dist{};
+  size_t m = 0;
+  for (size_t j = 0; j < n; ++j) {
+    if (j == i || prev_ok_[j] == 0) continue;
+    const double d2 = (feats[j].point - at).dot(feats[j].point - at);
+    if (m == neighbours_ && d2 >= dist[m - 1]) continue;
+    size_t q = m < neighbours_ ? m++ : m - 1;
+    while (q > 0 && dist[q - 1] > d2) {
+      dist[q] = dist[q - 1];
+      idx[q] = idx[q - 1];
+      snap[q] = snap[q - 1];
+      --q;
+    }
+    dist[q] = d2;
+    idx[q] = static_cast<int>(j);
+    snap[q] = prev_d_[j];
+  }
+  for (size_t q = m; q < neighbours_; ++q) idx[q] = -1;
+}
+
 void TrackingSession::deformation(int64_t t_ns) noexcept {
   Deformation& d = result_.deformation;
   const auto feats = tracker_.features();
-  const size_t n = std::min(feats.size(), prev_ok_.size());
-  cv::Vec3d sum_p(0, 0, 0), sum_d(0, 0, 0), sum_inc(0, 0, 0);
+  const size_t n = std::min({feats.size(), prev_ok_.size(), members_});
+  cv::Vec3d sum_p(0, 0, 0), sum_inc(0, 0, 0);
   double sum_inc_sq = 0.0;
   int ok = 0, common = 0;
   bool changed = false;
@@ -215,12 +309,10 @@ void TrackingSession::deformation(int64_t t_ns) noexcept {
     const bool now = f.status == FeatureStatus::kOk;
     if (now != (prev_ok_[i] != 0)) changed = true;
     if (!now) continue;
-    const cv::Vec3d di = f.point - f.point0;
     sum_p += f.point;
-    sum_d += di;
     ++ok;
     if (prev_ok_[i] != 0) {
-      const cv::Vec3d inc = di - prev_d_[i];
+      const cv::Vec3d inc = (f.point - f.point0) - prev_d_[i];
       sum_inc += inc;
       sum_inc_sq += inc.dot(inc);
       ++common;
@@ -229,21 +321,43 @@ void TrackingSession::deformation(int64_t t_ns) noexcept {
   d.ok = ok;
   d.total = static_cast<int>(feats.size());
   d.valid = ok > 0;
-  if (!d.valid) return;  // the reference stays at the last pair that had one
-  const cv::Vec3d mean_d = sum_d / ok;
+  if (!d.valid) return;  // every feature keeps its estimate until one is seen again
+  // Each feature's displacement: its own while ok; while hidden, its last one carried on by the
+  // mean increment of the features ok in both pairs (so an error lives only while the feature is
+  // hidden: when it comes back its own measurement replaces it, and nothing accumulates).
+  const cv::Vec3d mean_inc = common > 0 ? cv::Vec3d(sum_inc / common) : cv::Vec3d(0, 0, 0);
+  cv::Vec3d sum_hat(0, 0, 0);
+  for (size_t i = 0; i < n; ++i) {
+    const Feature& f = feats[i];
+    if (f.status == FeatureStatus::kOk) {
+      dhat_[i] = birth_[i] + (f.point - f.point0);
+    } else {
+      if (prev_ok_[i] != 0) hideFrom(i, n);
+      // Its own displacement when last seen plus its neighbours' motion since (each theirs:
+      // a difference of two of their own displacements, so nothing integrates); while none of
+      // them is ok, carried on by the mean increment.
+      cv::Vec3d moved(0, 0, 0);
+      int seen = 0;
+      for (size_t k = 0; k < neighbours_; ++k) {
+        const int j = nb_idx_[i * neighbours_ + k];
+        if (j < 0 || static_cast<size_t>(j) >= n) continue;
+        const Feature& g = feats[static_cast<size_t>(j)];
+        if (g.status != FeatureStatus::kOk) continue;
+        moved += (g.point - g.point0) - nb_d_[i * neighbours_ + k];
+        ++seen;
+      }
+      dhat_[i] = seen > 0 ? birth_[i] + prev_d_[i] + moved / seen : dhat_[i] + mean_inc;
+    }
+    sum_hat += dhat_[i];
+  }
+  const cv::Vec3d mean_d = sum_hat / static_cast<double>(std::max<size_t>(1, n));
   bool continuous = true;
   if (!have_output_) {
     offset_ = -mean_d;  // the signal starts at zero
     continuous = false;
-  } else if (changed || restart_) {
-    if (common > 0) {
-      offset_ = output_ + sum_inc / common - mean_d;
-    } else {
-      offset_ = output_ - mean_d;  // nothing in common: the motion in between is unknown
-      continuous = false;
-    }
+  } else if (changed && common == 0) {
+    continuous = false;  // nothing in common: the motion in between is unknown
   }
-  restart_ = false;
   have_output_ = true;
   output_ = mean_d + offset_;
   // Noise: one feature's increment scatters about the mean increment by sqrt(2) sigma_f per
