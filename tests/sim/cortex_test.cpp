@@ -134,6 +134,31 @@ TEST(CortexMotion, SagSinksTheCentreAsConfigured) {
   EXPECT_NEAR(rim, 1.0, 1e-9);
 }
 
+// Brain shift's turn (cortex-1h): the deformed surface turns rigidly about the axis through the
+// patch centre, by rotation_deg * (1 - exp(-t / tau)); the material points follow it exactly.
+TEST(CortexMotion, ShiftTurnsTheSurfaceAboutItsCentre) {
+  CortexSpec spec;
+  spec.oscillations.clear();
+  spec.sag = {0.0, 100.0, true, 6.0, {0.0, 1.0, 0.0}};
+  const CortexScene scene(spec);
+  const vision::StereoRig rig = paperRig();
+  for (double t : {50.0, 100.0, 1e4}) {
+    const double angle = 6.0 * (1.0 - std::exp(-t / 100.0));
+    // Two points along u (their offset is perpendicular to the v axis): the offset keeps its
+    // length and turns by the angle.
+    const cv::Vec3d a0 = scene.position(20, 0, 0) - scene.position(0, 0, 0);
+    const cv::Vec3d a1 = scene.position(20, 0, t) - scene.position(0, 0, t);
+    EXPECT_NEAR(cv::norm(a1), cv::norm(a0), 1e-9);
+    EXPECT_NEAR(std::acos(a0.dot(a1) / (cv::norm(a0) * cv::norm(a1))) * 180.0 / CV_PI, angle,
+                1e-6);
+    // Material points still round-trip through the image.
+    cv::Vec2d found;
+    ASSERT_TRUE(scene.materialAt(rig, rig.projectLeft(scene.position(8.0, -5.0, t)), t, found));
+    EXPECT_NEAR(found[0], 8.0, 1e-6);
+    EXPECT_NEAR(found[1], -5.0, 1e-6);
+  }
+}
+
 TEST(CortexScene, MaterialPointsRoundTripThroughTheLeftImage) {
   const vision::StereoRig rig = paperRig();
   CortexSpec spec;
@@ -171,6 +196,17 @@ TEST(CortexScene, InstrumentOccludesWhatIsBeneathIt) {
   EXPECT_FALSE(scene.occluded(behind, camera, 9.0));                           // before it enters
   EXPECT_FALSE(scene.occluded(behind, camera, 14.5));                          // after it left
   EXPECT_FALSE(scene.occluded(scene.position(25, 20, t_mid), camera, t_mid));  // far from the rod
+
+  // Repeated crossings (cortex-1h): the same crossing every period, `repeats` times.
+  spec.instrument.period_s = 30.0;
+  spec.instrument.repeats = 3;
+  const CortexScene again(spec);
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_TRUE(again.occluded(behind, camera, t_mid + 30.0 * k)) << "crossing " << k;
+    EXPECT_FALSE(again.occluded(behind, camera, 9.0 + 30.0 * k)) << "before crossing " << k;
+    EXPECT_FALSE(again.occluded(behind, camera, 14.5 + 30.0 * k)) << "after crossing " << k;
+  }
+  EXPECT_FALSE(again.occluded(behind, camera, t_mid + 90.0));  // three were asked for
 }
 
 }  // namespace

@@ -16,7 +16,8 @@ namespace {
 std::string configDir() { return test::dataDir() + "/../../config"; }
 
 TEST(SceneFile, ShippedScenesLoad) {
-  for (const char* name : {"cortex-60s", "cortex-hard", "plate-static", "plate-dynamic"}) {
+  for (const char* name : {"cortex-60s", "cortex-hard", "cortex-1h", "cortex-1h-compressed",
+                           "plate-static", "plate-dynamic"}) {
     auto s = loadScene(configDir() + "/scenes/" + name + ".toml");
     ASSERT_TRUE(s) << s.error().message;
     EXPECT_EQ(s->name, name);
@@ -33,6 +34,11 @@ TEST(SceneFile, ShippedScenesLoad) {
   EXPECT_TRUE(cortex->cortex.sag.enabled);
   EXPECT_TRUE(cortex->cortex.instrument.enabled);
   EXPECT_EQ(cortex->frames, 600);
+  auto hour = loadScene(configDir() + "/scenes/cortex-1h.toml");
+  EXPECT_DOUBLE_EQ(hour->cortex.sag.rotation_deg, 4.0);
+  EXPECT_DOUBLE_EQ(hour->cortex.sag.rotation_axis[1], 0.6);
+  EXPECT_DOUBLE_EQ(hour->cortex.instrument.period_s, 120.0);
+  EXPECT_EQ(hour->cortex.instrument.repeats, 0);
   auto dynamic = loadScene(configDir() + "/scenes/plate-dynamic.toml");
   EXPECT_EQ(dynamic->plate.protocol, PlateProtocol::kDynamic);
 }
@@ -72,6 +78,11 @@ void expectError(const std::string& text, const std::string& pattern) {
 const std::string kHead = "kind = \"cortex\"\nrig = \"r.yaml\"\n";
 
 TEST(SceneFile, MistakesNameFileLineAndKey) {
+  expectError(kHead + "[cortex.sag]\nrotation_axis = [0, 0, 0]\n",
+              "scene.toml:4: cortex.sag.rotation_axis: must not be zero");
+  expectError(kHead + "[cortex.instrument]\nduration_s = 8\nperiod_s = 5\n",
+              "scene.toml:5: cortex.instrument.period_s: must be 0 \\(once\\) or at least "
+              "duration_s");
   expectError("rig = \"r.yaml\"\n", "scene.toml: key 'kind' is missing");
   expectError("kind = \"cortex\"\n", "scene.toml: key 'rig' is missing");
   expectError("kind = \"brain\"\nrig = \"r\"\n",

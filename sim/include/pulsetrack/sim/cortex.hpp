@@ -78,9 +78,9 @@ class OscillationClock {
 struct Sag {
   double depth_mm = 0.0;
   double time_constant_s = 120.0;
+  bool enabled = false;
   double rotation_deg = 0.0;
   cv::Vec3d rotation_axis{1.0, 0.0, 0.0};  // normalized on use
-  bool enabled = false;
 };
 
 // An instrument (a rod, radius in mm) held above the surface, crossing the field between
