@@ -7,8 +7,10 @@
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <set>
 
+#include "pulsetrack/sim/session_truth.hpp"
 #include "pulsetrack/vision/affine_refiner.hpp"
 
 namespace pulsetrack::sim {
@@ -322,10 +324,8 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
   std::vector<double> err3, errd;
   std::vector<double> ts;
   std::vector<cv::Vec3d> meas, tru;
-  // The true mean displacement, made continuous by the session's rule.
-  std::map<int, cv::Vec3d> prev_true_d;
-  cv::Vec3d true_out(0, 0, 0), true_offset(0, 0, 0);
-  bool have_true = false;
+  std::optional<SessionTruth> session_truth;
+  if (sim.cortex() != nullptr) session_truth.emplace(sim);
   double track_s = 0.0, refresh_s = 0.0;
   long ok_sum = 0;
   int tracked_pairs = 0;
@@ -391,7 +391,6 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
       }
     }
     int ok = 0;
-    std::map<int, cv::Vec3d> true_d;
     for (const vision::Feature& f : res.features) {
       ids.insert(f.id);
       Truth& tr = truth[f.id];
@@ -442,7 +441,6 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
       err3.push_back(e);
       run.max_3d_mm = std::max(run.max_3d_mm, e);
       if (e > 0.5) ++run.above_half_mm;
-      true_d[f.id] = p - scene->position(tr.uv[0], tr.uv[1], tr.t_ref);
     }
     if (i == 0 || run.pairs == 0) run.first_ok = ok;
     run.ok_per_pair.push_back(ok);
@@ -463,35 +461,13 @@ vision::Result<SceneRun> runScene(StereoSimulator& sim, const SceneRunOptions& o
         }
       }
     }
-    // The continuous true mean displacement (features new in a detection start at zero).
+    // The true mean displacement by the session's rule (session_truth.hpp).
     const vision::Deformation& d = res.deformation;
-    if (d.valid && !true_d.empty()) {
-      cv::Vec3d mean(0, 0, 0), inc(0, 0, 0);
-      int common = 0;
-      bool changed = prev_true_d.size() != true_d.size();
-      for (const auto& [id, v] : true_d) {
-        mean += v;
-        const auto pv = prev_true_d.find(id);
-        if (pv == prev_true_d.end()) {
-          changed = true;
-          continue;
-        }
-        inc += v - pv->second;
-        ++common;
-      }
-      mean /= static_cast<double>(true_d.size());
-      if (!have_true || !d.continuous) {
-        true_offset = d.displacement - mean;  // the session (re)starts its signal here
-        have_true = true;
-      } else if (changed) {
-        true_offset = common > 0 ? true_out + inc / common - mean : true_out - mean;
-      }
-      true_out = mean + true_offset;
-      prev_true_d = true_d;
-      errd.push_back(cv::norm(d.displacement - true_out) / std::sqrt(3.0));
+    if (d.valid && session_truth && session_truth->update(res, t)) {
+      errd.push_back(cv::norm(d.displacement - session_truth->displacement()) / std::sqrt(3.0));
       ts.push_back(t);
       meas.push_back(d.displacement);
-      tru.push_back(true_out);
+      tru.push_back(session_truth->displacement());
     }
   }
   run.distinct_ids = static_cast<int>(ids.size());

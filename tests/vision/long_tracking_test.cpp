@@ -3,7 +3,8 @@
 // and the gains drifting (config/scenes/cortex-1h.toml; the suite runs its 3-minute compression,
 // cortex-1h-compressed.toml; PULSETRACK_LONG_SCENE=config/scenes/cortex-1h.toml runs the hour).
 //
-// Against the simulator's truth (tests/vision/session_truth.hpp, written apart from the session):
+// Against the simulator's truth (sim/include/pulsetrack/sim/session_truth.hpp, written apart from
+// the session):
 // - identity: every time a feature comes back (ok after not ok), its left pixel is where its
 //   own material point is now (a feature that came back on other tissue is an identity lost);
 // - drift: the mean displacement against the continuous truth and the dense field at held-out
@@ -26,10 +27,10 @@
 
 #include "pulsetrack/analysis/plot.hpp"
 #include "pulsetrack/sim/scene.hpp"
+#include "pulsetrack/sim/session_truth.hpp"
 #include "pulsetrack/vision/deformation_field.hpp"
 #include "pulsetrack/vision/tracking_session.hpp"
 #include "sim/cortex_roi.hpp"
-#include "vision/session_truth.hpp"
 
 namespace pulsetrack::vision {
 namespace {
@@ -92,6 +93,10 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
   const sim::CortexScene& scene = *s.cortex();
   SessionConfig config;
   config.roi = test::cortexRoi(s, 19.0);
+  // The tracker's defaults. (Retiring hidden features after 10 s, the default's 300 pairs at
+  // 30 Hz, instead of 60 s at these 5 fps, kept more features ok, 35 instead of 30 at the
+  // floor, but made the field worse, 0.087 instead of 0.052 mm at the end: each re-detection's
+  // new features take their reference from the field, in the gaps.)
   TrackingSession session(s.rig(), config);
   // The default field, and two smaller smoothings (the 10 mm sag is a deep bowl).
   const std::array<double, 3> smoothing{FieldConfig{}.smoothing, 100.0, 10.0};
@@ -104,8 +109,8 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
   DeformationField& field = fields.front();
   std::vector<cv::Vec2d> first_set;  // the first detection's material points
   std::vector<cv::Vec3d> first_p0;   // ... and their reference positions
-  test::SessionTruth truth(s);
-  std::vector<test::HeldOutPoint> held;
+  sim::SessionTruth truth(s);
+  std::vector<sim::HeldOutPoint> held;
 
   const int frames = s.frameCount();
   std::vector<Window> windows(10);
@@ -152,9 +157,9 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
     ms.push_back(w.us.back() / 1e3);
     if (i == 0) {
       for (const Feature& f : pr.features) first_ids.insert(f.id);
-      held = test::heldOutPoints(s, config.roi.left, t, pr.features);
+      held = sim::heldOutPoints(s, config.roi.left, t, pr.features);
       for (const Feature& f : pr.features)
-        if (const test::MaterialTruth* tr = truth.find(f.id)) {
+        if (const sim::MaterialTruth* tr = truth.find(f.id)) {
           first_set.push_back(tr->uv);
           first_p0.push_back(scene.position(tr->uv[0], tr->uv[1], t));
         }
@@ -165,11 +170,21 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
     fixed /= static_cast<double>(std::max<size_t>(1, first_set.size()));
     w.fixed_e2 += (d.displacement - fixed).dot(d.displacement - fixed) / 3.0;
     if (field_ok && i % 5 == 0) {  // the same mean from the field: every point, hidden or not
-      cv::Vec3d fm(0, 0, 0);
-      for (const cv::Vec3d& p0 : first_p0) fm += field.at(p0).displacement;
-      fm /= static_cast<double>(std::max<size_t>(1, first_p0.size()));
-      w.fixed_field_e2 += (fm - fixed).dot(fm - fixed) / 3.0;
-      ++w.fixed_field_n;
+      // Over the points it answers for (beyond the features' reach it says so: confidence 0).
+      cv::Vec3d fm(0, 0, 0), tm(0, 0, 0);
+      int answered = 0;
+      for (size_t k = 0; k < first_p0.size(); ++k) {
+        const FieldQuery q = field.at(first_p0[k]);
+        if (q.confidence <= 0.0) continue;
+        fm += q.displacement;
+        tm += scene.position(first_set[k][0], first_set[k][1], t) - first_p0[k];
+        ++answered;
+      }
+      if (answered > 0) {
+        const cv::Vec3d e2 = (fm - tm) / answered;
+        w.fixed_field_e2 += e2.dot(e2) / 3.0;
+        ++w.fixed_field_n;
+      }
     }
 
     // The mean displacement, and its step against the true step (a re-detection must not jump).
@@ -197,7 +212,7 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
       const auto prev = was_ok.find(f.id);
       const bool returned = ok && prev != was_ok.end() && !prev->second;
       was_ok[f.id] = ok;
-      const test::MaterialTruth* tr = truth.find(f.id);
+      const sim::MaterialTruth* tr = truth.find(f.id);
       if (!ok || tr == nullptr) continue;
       const auto td = truth.featureDisplacements().find(f.id);
       if (td != truth.featureDisplacements().end()) {
@@ -222,7 +237,7 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
       if (!valid[k]) continue;
       double e2 = 0.0;
       int ne = 0;
-      for (const test::HeldOutPoint& h : held) {
+      for (const sim::HeldOutPoint& h : held) {
         const FieldQuery q = fields[k].at(h.p0);
         if (q.confidence <= 0.0) continue;
         const double fe = cv::norm(q.position - scene.position(h.uv[0], h.uv[1], t));
@@ -307,10 +322,11 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
   EXPECT_GT(true_shift, 5.0);  // the case did shift the brain
   EXPECT_GT(returns, 100);     // the instrument did hide features, again and again
   EXPECT_LE(identity_lost, returns / 100);
-  EXPECT_LE(z.meanRms(), 0.05);
+  EXPECT_LE(z.meanRms(), 0.03);  // the increment rule's random walk: 0.12
   EXPECT_LE(z.fieldRms(), 0.1);
-  EXPECT_LE(worst_step, 0.1);
-  EXPECT_GE(floor_ok, 30);
+  EXPECT_LE(z.fixedFieldRms(), 0.03);  // fixed material points over the whole run, from the field
+  EXPECT_LE(worst_step, 0.05);
+  EXPECT_GE(floor_ok, 25);                            // measured 30 (the hour: 48)
   EXPECT_LE(max_total, config.tracker.max_features);  // what a pair costs is bounded
 }
 

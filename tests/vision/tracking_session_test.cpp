@@ -21,9 +21,9 @@
 #include <set>
 
 #include "pulsetrack/sim/scene.hpp"
+#include "pulsetrack/sim/session_truth.hpp"
 #include "pulsetrack/vision/deformation_field.hpp"
 #include "sim/cortex_roi.hpp"
-#include "vision/session_truth.hpp"
 
 namespace pulsetrack::vision {
 namespace {
@@ -48,7 +48,7 @@ struct Recorded {
 // 1 mm of a feature; the robot's question for each, "where is the material point that was at P in
 // the reference pair now?" (DeformationField::at), against the scene's true position. Errors are
 // 3D (mm). Also the baselines a robot would have without the field: every point moved by the
-// session's mean displacement, and the affine limit (huge smoothing).
+// session's mean displacement, and the limit of huge smoothing (the spline's quadratic part alone).
 struct FieldScore {
   double rms = 0, max = 0, rms_edge = 0;
   int points = 0, pairs = 0, below_confidence = 0;
@@ -57,8 +57,8 @@ struct FieldScore {
 FieldScore scoreField(const std::vector<Recorded>& pairs, const sim::StereoSimulator& s,
                       const Roi& roi, const FieldConfig* config, int max_features) {
   const sim::CortexScene& scene = *s.cortex();
-  const std::vector<test::HeldOutPoint> held =
-      test::heldOutPoints(s, roi.left, pairs.front().t, pairs.front().features);
+  const std::vector<sim::HeldOutPoint> held =
+      sim::heldOutPoints(s, roi.left, pairs.front().t, pairs.front().features);
   DeformationField field(config != nullptr ? *config : FieldConfig{}, max_features);
   FieldScore sc;
   double s2 = 0, s2e = 0;
@@ -66,7 +66,7 @@ FieldScore scoreField(const std::vector<Recorded>& pairs, const sim::StereoSimul
   for (const Recorded& rec : pairs) {
     if (config != nullptr && !field.update(rec.features, rec.detected, rec.detections)) continue;
     ++sc.pairs;
-    for (const test::HeldOutPoint& h : held) {
+    for (const sim::HeldOutPoint& h : held) {
       const cv::Vec3d truth = scene.position(h.uv[0], h.uv[1], rec.t);
       cv::Vec3d est = h.p0 + rec.mean_displacement;
       if (config != nullptr) {
@@ -102,7 +102,7 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
   TrackingSession session(s.rig(), config);
   // 18-31 s: the instrument crosses at 20-24 s; a re-detection is asked for at 27 s.
   const int first = 180, last = 310, redetect_at = 270;
-  test::SessionTruth truth(s);
+  sim::SessionTruth truth(s);
   std::set<int> prev_ok_ids;
   int changes = 0;  // pairs whose ok set differs from the last pair's
   std::vector<double> err_d, err_v, sigma_d, sigma_v;
@@ -138,7 +138,7 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
     cv::Vec3d true_vel(0, 0, 0);
     int nv = 0;
     for (const auto& [id, unused] : truth.featureDisplacements()) {
-      const test::MaterialTruth* tr = truth.find(id);
+      const sim::MaterialTruth* tr = truth.find(id);
       const double tv = t - d.velocity_delay_s;
       true_vel += (scene.position(tr->uv[0], tr->uv[1], tv + 1e-3) -
                    scene.position(tr->uv[0], tr->uv[1], tv - 1e-3)) /
@@ -148,7 +148,7 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
     if (i == first) {
       t_first = t;
       for (const Feature& f : pr.features)
-        if (const test::MaterialTruth* tr = truth.find(f.id)) first_set.push_back(tr->uv);
+        if (const sim::MaterialTruth* tr = truth.find(f.id)) first_set.push_back(tr->uv);
     }
     // Errors: displacement, velocity at the published delay; the step against the true step.
     err_d.push_back(cv::norm(d.displacement - true_out) / std::sqrt(3.0));
@@ -237,7 +237,7 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
   }
 
   // The dense field on held-out material points, its smoothing measured (the default is the
-  // README's row), against the mean displacement and the affine limit.
+  // README's row), against the mean displacement and the limit of huge smoothing.
   const FieldScore mean_only = scoreField(recorded, s, config.roi, nullptr, 100);
   std::cout << "held-out material points, 3D error over " << mean_only.pairs
             << " pairs: the mean displacement everywhere: RMS " << mean_only.rms << " mm, max "
@@ -249,8 +249,8 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
     const FieldScore f = scoreField(recorded, s, config.roi, &fc, 100);
     std::cout << "  TPS smoothing " << lambda
               << (lambda == FieldConfig{}.smoothing ? " (default)" : "")
-              << (lambda >= 1e6 ? " (affine)" : "") << ": RMS " << f.rms << " mm, max " << f.max
-              << ", edge RMS " << f.rms_edge << "; " << f.points << " points scored, "
+              << (lambda >= 1e6 ? " (the quadratic limit)" : "") << ": RMS " << f.rms << " mm, max "
+              << f.max << ", edge RMS " << f.rms_edge << "; " << f.points << " points scored, "
               << f.below_confidence << " beyond the field's reach\n";
     if (lambda == FieldConfig{}.smoothing) chosen = f;
   }

@@ -1,5 +1,6 @@
 #pragma once
-// The simulator's truth for a TrackingSession's output, written independently of the session:
+// The simulator's truth for a TrackingSession's output, written independently of the session
+// (the tests and bench/gate_eval score the session against it):
 // - SessionTruth: each feature's material point (the surface point under its left pixel in the
 //   pair it first appeared) and the true deformation by the session's documented rule
 //   (tracking_session.hpp: a hidden feature moved by its neighbours' motion since it was seen, a
@@ -18,7 +19,7 @@
 #include "pulsetrack/sim/scene.hpp"
 #include "pulsetrack/vision/tracking_session.hpp"
 
-namespace pulsetrack::test {
+namespace pulsetrack::sim {
 
 struct MaterialTruth {
   cv::Vec2d uv;
@@ -28,7 +29,7 @@ struct MaterialTruth {
 
 class SessionTruth {
  public:
-  explicit SessionTruth(const sim::StereoSimulator& s) : s_(s), scene_(*s.cortex()) {}
+  explicit SessionTruth(const StereoSimulator& s) : s_(s), scene_(*s.cortex()) {}
 
   // After the session's process() of the pair at time t. Returns false when no feature of the
   // signal is ok with a truth (the signal is then undefined).
@@ -157,8 +158,8 @@ class SessionTruth {
     return tr;
   }
 
-  const sim::StereoSimulator& s_;
-  const sim::CortexScene& scene_;
+  const StereoSimulator& s_;
+  const CortexScene& scene_;
   std::map<int, MaterialTruth> truth_;
   std::map<int, Member> members_;
   std::map<int, cv::Vec3d> true_d_;
@@ -173,10 +174,10 @@ struct HeldOutPoint {
   bool edge = false;
 };
 
-inline std::vector<HeldOutPoint> heldOutPoints(const sim::StereoSimulator& s, const cv::Rect& roi,
+inline std::vector<HeldOutPoint> heldOutPoints(const StereoSimulator& s, const cv::Rect& roi,
                                                double t0,
                                                std::span<const vision::Feature> features) {
-  const sim::CortexScene& scene = *s.cortex();
+  const CortexScene& scene = *s.cortex();
   std::vector<HeldOutPoint> held;
   for (int j = 0; j <= 14; ++j) {
     for (int i = 0; i <= 14; ++i) {
@@ -194,4 +195,4 @@ inline std::vector<HeldOutPoint> heldOutPoints(const sim::StereoSimulator& s, co
   return held;
 }
 
-}  // namespace pulsetrack::test
+}  // namespace pulsetrack::sim
