@@ -149,8 +149,7 @@ TEST(CortexMotion, ShiftTurnsTheSurfaceAboutItsCentre) {
     const cv::Vec3d a0 = scene.position(20, 0, 0) - scene.position(0, 0, 0);
     const cv::Vec3d a1 = scene.position(20, 0, t) - scene.position(0, 0, t);
     EXPECT_NEAR(cv::norm(a1), cv::norm(a0), 1e-9);
-    EXPECT_NEAR(std::acos(a0.dot(a1) / (cv::norm(a0) * cv::norm(a1))) * 180.0 / CV_PI, angle,
-                1e-6);
+    EXPECT_NEAR(std::acos(a0.dot(a1) / (cv::norm(a0) * cv::norm(a1))) * 180.0 / CV_PI, angle, 1e-6);
     // Material points still round-trip through the image.
     cv::Vec2d found;
     ASSERT_TRUE(scene.materialAt(rig, rig.projectLeft(scene.position(8.0, -5.0, t)), t, found));
