@@ -75,6 +75,35 @@ TEST(SimulateCli, HardSceneRendersTheRightCamerasOwnGain) {
   EXPECT_NEAR(at3s / at0, 0.592 / 1.008, 0.05) << at0 << " " << at3s;
 }
 
+// The hours-long scenes as a user renders them: the CLI reads their new keys (the sag's turn,
+// repeated instruments) and the recording's copy of the scene reads back with them.
+TEST(SimulateCli, LongScenesRenderAndTheirCopyReadsBack) {
+  for (const std::string name : {"cortex-1h", "cortex-1h-compressed"}) {
+    test::TempDir dir;
+    const std::string out = dir / "rec";
+    const auto r = test::run(test::cli() + " simulate -q --scene " + scenes() + "/" + name +
+                             ".toml --frames 3 --out " + out);
+    ASSERT_EQ(r.exit_code, 0) << name << ": " << r.output;
+    auto rec = record::Reader::open(out);
+    ASSERT_TRUE(rec) << rec.error().message;
+    EXPECT_EQ(rec->manifest().source, "sim:" + name);
+    EXPECT_EQ(rec->size(), 3U) << name;
+    auto copy = sim::loadScene(dir.path() / "rec/scene.toml");
+    ASSERT_TRUE(copy) << copy.error().message;
+    auto shipped = sim::loadScene(scenes() + "/" + name + ".toml");
+    ASSERT_TRUE(shipped) << shipped.error().message;
+    EXPECT_EQ(copy->cortex.sag.rotation_deg, shipped->cortex.sag.rotation_deg) << name;
+    EXPECT_GT(copy->cortex.sag.rotation_deg, 0.0) << name;
+    EXPECT_EQ(copy->cortex.instrument.period_s, shipped->cortex.instrument.period_s) << name;
+    EXPECT_GT(copy->cortex.instrument.period_s, 0.0) << name;  // crossings again and again
+    cv::Mat l, rr;
+    ASSERT_TRUE(rec->read(2, l, rr));
+    cv::Scalar mean, stddev;
+    cv::meanStdDev(l, mean, stddev);
+    EXPECT_GT(stddev[0], 20.0) << name;  // rendered cortex, not a blank image
+  }
+}
+
 TEST(SimulateCli, PlateRecordingHasTrackerFiles) {
   test::TempDir dir;
   const auto r = test::run(test::cli() + " simulate -q --scene " + scenes() +

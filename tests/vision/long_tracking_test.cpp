@@ -35,6 +35,16 @@
 namespace pulsetrack::vision {
 namespace {
 
+// One panel of the run's figure: over time in minutes, from zero up.
+void panel(analysis::Axes& a, std::string title, std::string ylabel,
+           std::vector<analysis::LineSeries> lines) {
+  a.title = std::move(title);
+  a.xlabel = "time (min)";
+  a.ylabel = std::move(ylabel);
+  a.lines = std::move(lines);
+  a.ymin = 0.0;
+}
+
 std::string sceneFile() {
   if (const char* e = std::getenv("PULSETRACK_LONG_SCENE")) return e;
   return std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-1h-compressed.toml";
@@ -295,26 +305,14 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
 
   // The figure: errors, the feature count and the time per pair over the run.
   analysis::Figure fig(1400, 1100, 3, 1, spec->name + ": hours-long tracking against the truth");
-  analysis::Axes& e = fig.at(0, 0);
-  e.title = "error (3D)";
-  e.xlabel = "time (min)";
-  e.ylabel = "mm";
-  e.lines.push_back({ts, sig_err, {180, 90, 30}, "mean displacement vs its truth", 1});
-  e.lines.push_back({tf, field_rms, {40, 40, 200}, "field, held-out points (RMS)", 2});
-  e.ymin = 0.0;
-  analysis::Axes& c = fig.at(1, 0);
-  c.title = "features";
-  c.xlabel = "time (min)";
-  c.ylabel = "count";
-  c.lines.push_back({ts, oks, {40, 140, 40}, "ok", 1});
-  c.lines.push_back({ts, totals, {120, 120, 120}, "tracked (ok or hidden)", 1});
-  c.ymin = 0.0;
-  analysis::Axes& q = fig.at(2, 0);
-  q.title = "time per pair (track, deformation, field, stereo refresh; 2 cores shared)";
-  q.xlabel = "time (min)";
-  q.ylabel = "ms";
-  q.lines.push_back({ts, ms, {30, 30, 30}, "per pair", 1});
-  q.ymin = 0.0;
+  panel(fig.at(0, 0), "error (3D)", "mm",
+        {{ts, sig_err, {180, 90, 30}, "mean displacement vs its truth", 1},
+         {tf, field_rms, {40, 40, 200}, "field, held-out points (RMS)", 2}});
+  panel(fig.at(1, 0), "features", "count",
+        {{ts, oks, {40, 140, 40}, "ok", 1},
+         {ts, totals, {120, 120, 120}, "tracked (ok or hidden)", 1}});
+  panel(fig.at(2, 0), "time per pair (track, deformation, field, stereo refresh; 2 cores shared)",
+        "ms", {{ts, ms, {30, 30, 30}, "per pair", 1}});
   const std::string png = spec->name + "-long-tracking.png";
   ASSERT_TRUE(fig.save(png)) << png;
   std::cout << "figure: " << std::filesystem::absolute(png).string() << "\n";

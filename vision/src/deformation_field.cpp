@@ -203,15 +203,7 @@ void DeformationField::rebuild(std::span<const Feature> features) {
     Node nd;
     nd.id = f.id;
     nd.fidx = i;
-    cv::Vec3d ref = f.point0;
-    if (solved) {  // a fixed point: converges at the displacement's gradient (0.2 in a deep sag)
-      for (int it = 0; it < 30; ++it) {
-        const cv::Vec3d nref = f.point0 - evaluate(plane(ref));
-        const double step = cv::norm(nref - ref);
-        ref = nref;
-        if (step < 1e-9) break;
-      }
-    }
+    const cv::Vec3d ref = solved ? reference(f.point0) : f.point0;
     nd.c = plane(ref);
     nd.delta = f.point0 - ref;
     next.push_back(nd);
@@ -468,6 +460,7 @@ bool DeformationField::predict(std::span<const double> weights, double step_s,
 
 cv::Vec3d DeformationField::reference(const cv::Vec3d& now_mm) const noexcept {
   if (!valid_) return now_mm;
+  // A fixed point: converges at the displacement's gradient (0.2 in a deep sag).
   cv::Vec3d ref = now_mm;
   for (int it = 0; it < 30; ++it) {
     const cv::Vec3d nref = now_mm - evaluate(plane(ref));

@@ -272,8 +272,8 @@ const PairResult& TrackingSession::process(const cv::Mat& left, const cv::Mat& r
 void TrackingSession::hideFrom(size_t i, size_t n) noexcept {
   // The nearest features that were ok in the last pair (insertion into a short list), with their
   // own displacements then, when feature i was last seen too.
-  const cv::Vec3d at = tracker_.features()[i].point;
   const auto feats = tracker_.features();
+  const cv::Vec3d at = feats[i].point;
   int* const idx = nb_idx_.data() + i * neighbours_;
   cv::Vec3d* const snap = nb_d_.data() + i * neighbours_;
   std::array<double, 16> dist{};
