@@ -33,6 +33,10 @@ CheckedCommand checkCommand(const pulsetrack_msgs_msg_dds__Command_& c, const st
     out.kind = CommandKind::kStop;
   } else if (what == "redetect") {
     out.kind = CommandKind::kRedetect;
+  } else if (what == "record_start") {
+    out.kind = CommandKind::kRecordStart;
+  } else if (what == "record_stop") {
+    out.kind = CommandKind::kRecordStop;
   } else if (what == "set_roi") {
     const cv::Rect l(c.roi_left[0], c.roi_left[1], c.roi_left[2], c.roi_left[3]);
     const cv::Rect r(c.roi_right[0], c.roi_right[1], c.roi_right[2], c.roi_right[3]);
@@ -46,7 +50,7 @@ CheckedCommand checkCommand(const pulsetrack_msgs_msg_dds__Command_& c, const st
       out.depth_mm = depth_mm;
     }
   } else {
-    why = "unknown command (start, stop, redetect, set_roi)";
+    why = "unknown command (start, stop, redetect, set_roi, record_start, record_stop)";
   }
   if (!why.empty()) {
     out.kind = CommandKind::kRefused;

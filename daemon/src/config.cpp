@@ -235,6 +235,14 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     if (auto ok = vision::checkFieldConfig(f); !ok && error.empty())
       error = fmt::format("{}: {}", file, ok.error().message);
   }
+  if (const toml::table* t = r.table("preview")) {
+    TableReader s(*t, file, "preview", &error);
+    c.preview.enabled = s.boolean("enabled", c.preview.enabled);
+    c.preview.rate_hz = s.number("rate_hz", c.preview.rate_hz, 0.2, 30.0);
+    c.preview.scale = s.integer("scale", c.preview.scale, 1, 8);
+    c.preview.jpeg_quality = s.integer("jpeg_quality", c.preview.jpeg_quality, 10, 100);
+    s.finish();
+  }
   if (const toml::table* t = r.table("prediction")) {
     TableReader s(*t, file, "prediction", &error);
     vision::PredictionConfig& p = c.prediction;

@@ -172,29 +172,12 @@ int run(int argc, char** argv) {
       return 1;
     }
   }
-  std::unique_ptr<record::LiveRecorder> recorder;
+  daemon::Pipeline pipeline(*config, std::move(source), *participant);
   if (config->record) {
-    const auto dir = config->record_dir / daemon::recordingName(config->rig_id);
-    record::LiveRecorderOptions o;
-    o.dir = dir;
-    o.slots = config->record_slots;
-    o.min_free_bytes = static_cast<uint64_t>(config->record_min_free_mb) * 1'000'000;
-    o.resume_check_ms = config->record_resume ? 2000 : 0;
-    o.manifest.source = "pulsetrackd " + source->name();
-    o.manifest.rig_id = config->rig_id;
-    o.manifest.width = source->rig().left.imageSize().width;
-    o.manifest.height = source->rig().left.imageSize().height;
-    o.manifest.nominal_fps = config->fps;
-    auto r = record::LiveRecorder::start(o, source->rig());
-    if (!r) {
-      // Tracking matters more than the recording: say it and run on.
-      daemon::log::get("recorder").warn("not recording: {}", r.error().message);
-    } else {
-      recorder = std::move(*r);
-      daemon::log::get("recorder").info("recording to {}", dir.string());
-    }
+    // Tracking matters more than the recording: say it and run on.
+    if (const std::string why = pipeline.startRecording(); !why.empty())
+      daemon::log::get("recorder").warn("not recording: {}", why);
   }
-  daemon::Pipeline pipeline(*config, std::move(source), *participant, recorder.get());
   auto started = pipeline.start();
   if (!started) {
     log_pipeline.error("{}", started.error().message);
@@ -235,16 +218,7 @@ int run(int argc, char** argv) {
   }
   notifier.stopping();
   pipeline.stop();
-  if (recorder) {
-    recorder->stop();
-    const auto st = recorder->status();
-    daemon::log::get("recorder")
-        .info(
-            "recorded {} frames in {} segments ({} skipped: disk behind; {} disk faults, {} "
-            "pairs not recorded){}{}",
-            st.written, st.segment, st.thinned, st.faults, st.unrecorded,
-            st.error.empty() ? "" : "; stopped: ", st.error);
-  }
+  (void)pipeline.stopRecording();  // says what it recorded
   if (trigger) trigger->stop();
   log_pipeline.info("stopped after {} tracked pairs", pipeline.tracked());
   return 0;

@@ -8,6 +8,8 @@
 #include <cstring>
 #include <limits>
 #include <memory>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <thread>
 
 #include "pulsetrack/daemon/command.hpp"
@@ -71,13 +73,20 @@ std::string recordingName(const std::string& rig_id) {
 }
 
 Pipeline::Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSource> source,
-                   const dds::Participant& participant, record::LiveRecorder* recorder)
-    : config_(config), source_(std::move(source)), recorder_(recorder), participant_(participant) {
+                   const dds::Participant& participant)
+    : config_(config), source_(std::move(source)), participant_(participant) {
   quiet_after_ns_ = std::max<int64_t>(1'000'000'000, static_cast<int64_t>(3e9 / config_.fps));
   const cv::Size size = source_->rig().left.imageSize();
   for (Frame& f : frames_.slots()) {
     f.pair.left.create(size, CV_8UC1);
     f.pair.right.create(size, CV_8UC1);
+  }
+  if (config_.preview.enabled) {
+    preview_period_ns_ = static_cast<int64_t>(1e9 / config_.preview.rate_hz);
+    for (PreviewFrame& p : previews_.slots()) {
+      p.left.create(size, CV_8UC1);
+      p.right.create(size, CV_8UC1);
+    }
   }
   for (TrackResult& r : results_.slots())
     r.features.reserve(static_cast<size_t>(config_.tracker.max_features));
@@ -115,6 +124,15 @@ vision::Result<std::vector<std::string>> Pipeline::start() {
     if (!tw) return std::unexpected(tw.error());
     targets_writer_ = std::move(*tw);
   }
+  if (config_.preview.enabled) {
+    for (int k = 0; k < 2; ++k) {
+      auto iw = dds::Writer::create(
+          participant_, (k == 0 ? topics.image_left : topics.image_right).c_str(),
+          &sensor_msgs_msg_dds__CompressedImage__desc, dds::Profile::kSensorData);
+      if (!iw) return std::unexpected(iw.error());
+      image_writers_[k] = std::move(*iw);
+    }
+  }
   if (auto ok = source_->start(); !ok) return std::unexpected(ok.error());
   std::vector<std::string> warnings;
   if (config_.lock_memory) {
@@ -137,6 +155,12 @@ vision::Result<std::vector<std::string>> Pipeline::start() {
   publish_ = with_policy(2, "pt-publish", config_.publish, &Pipeline::publishLoop);
   for (int v = set_up.load(); v < 3; v = set_up.load()) set_up.wait(v);
   command_ = std::thread([this] { commandLoop(); });
+  if (config_.preview.enabled) {  // normal priority: it must never take a core from the stages
+    preview_ = std::thread([this] {
+      pthread_setname_np(pthread_self(), "pt-preview");
+      previewLoop();
+    });
+  }
   for (std::string& w : thread_warnings) {
     if (!w.empty()) warnings.push_back(std::move(w));
   }
@@ -151,7 +175,9 @@ void Pipeline::stop() {
   results_seq_.notify_all();
   consumed_.fetch_add(1);
   consumed_.notify_all();
-  for (std::thread* t : {&capture_, &track_, &publish_, &command_}) {
+  preview_seq_.fetch_add(1);
+  preview_seq_.notify_all();
+  for (std::thread* t : {&capture_, &track_, &publish_, &command_, &preview_}) {
     if (t->joinable()) t->join();
   }
   source_->stop();
@@ -162,7 +188,11 @@ void Pipeline::captureLoop() {
   bool out = false;      // an outage: a fault, or quiet for longer than quiet_after_ns_
   int64_t out_since = 0;
   uint64_t lost_at_outage = 0;
+  capture_running_.store(true);
   while (running_.load(std::memory_order_relaxed)) {
+    // The recorder is let go of at the end of each turn (stopRecording waits for that).
+    capture_epoch_.fetch_add(1, std::memory_order_acq_rel);
+    capture_epoch_.notify_all();
     Frame& f = frames_.back();
     const drivers::Next n = source_->next(f.pair, std::chrono::milliseconds(100));
     const int64_t now = rt::monotonicNs();
@@ -180,13 +210,22 @@ void Pipeline::captureLoop() {
       }
       f.captured_ns = now;
       capture_lat_.record(static_cast<uint64_t>(std::max<int64_t>(0, now - f.pair.t_left_ns)));
-      if (recorder_ != nullptr) {  // a copy into a free slot, or a counted skip: never a wait
-        if (recorded_ == UINT64_MAX) recorded_ = f.pair.trigger_seq;  // the recording's frame 0
-        (void)recorder_->offer({f.pair.trigger_seq - recorded_, f.pair.trigger_seq,
-                                f.pair.t_left_ns, f.pair.t_right_ns, 0},
-                               f.pair.left, f.pair.right);
+      if (record::LiveRecorder* rec = recorder_live_.load(std::memory_order_acquire)) {
+        // A copy into a free slot, or a counted skip: never a wait.
+        // A new recording (its generation is stored before its pointer): its frame 0.
+        if (const uint64_t gen = recording_gen_.load(std::memory_order_acquire);
+            gen != recording_of_) {
+          recording_of_ = gen;
+          recorded_ = f.pair.trigger_seq;
+        }
+        (void)rec->offer({f.pair.trigger_seq - recorded_, f.pair.trigger_seq, f.pair.t_left_ns,
+                          f.pair.t_right_ns, 0},
+                         f.pair.left, f.pair.right);
       }
       frames_.publish();
+      // The slot just published is read by the track stage only, and written again by this
+      // stage only after two more publishes: the preview copies it now, off the pair's latency.
+      if (preview_period_ns_ > 0) offerPreview(f, now);
       last_frame_ns_.store(now, std::memory_order_relaxed);
       faulted = false;
       ++handed_;
@@ -218,6 +257,125 @@ void Pipeline::captureLoop() {
     frames_seq_.fetch_add(1, std::memory_order_release);
     frames_seq_.notify_one();
   }
+  capture_running_.store(false);
+  capture_epoch_.fetch_add(1, std::memory_order_acq_rel);
+  capture_epoch_.notify_all();
+}
+
+void Pipeline::offerPreview(const Frame& f, int64_t now) noexcept {
+  if (now - last_preview_ns_ < preview_period_ns_) return;
+  last_preview_ns_ = now;
+  PreviewFrame& p = previews_.back();
+  f.pair.left.copyTo(p.left);  // the same size and type: a memcpy into the preallocated image
+  f.pair.right.copyTo(p.right);
+  p.trigger_seq = f.pair.trigger_seq;
+  p.t_left_ns = f.pair.t_left_ns;
+  p.t_right_ns = f.pair.t_right_ns;
+  previews_.publish();
+  preview_copy_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - now));
+  preview_seq_.fetch_add(1, std::memory_order_release);
+  preview_seq_.notify_one();
+}
+
+void Pipeline::previewLoop() {
+  const int scale = config_.preview.scale;
+  const std::vector<int> params = {cv::IMWRITE_JPEG_QUALITY, config_.preview.jpeg_quality};
+  cv::Mat small[2];
+  std::vector<uchar> jpeg[2];
+  std::string format = "mono8; jpeg compressed mono8";  // image_transport's compressed format
+  std::string frame_ids[2] = {"pulsetrack_left_camera", "pulsetrack_right_camera"};
+  uint64_t seen = 0;
+  while (running_.load(std::memory_order_relaxed)) {
+    if (!waitFor(preview_seq_, seen, running_)) break;
+    const PreviewFrame* p = previews_.take();
+    if (p == nullptr) continue;
+    const int64_t t0 = rt::monotonicNs();
+    bool ok = true;
+    for (int k = 0; k < 2; ++k) {
+      const cv::Mat& full = k == 0 ? p->left : p->right;
+      if (scale > 1)
+        cv::resize(full, small[k], cv::Size(full.cols / scale, full.rows / scale), 0, 0,
+                   cv::INTER_AREA);
+      else
+        small[k] = full;
+      ok = ok && cv::imencode(".jpg", small[k], jpeg[k], params);
+    }
+    if (!ok) {
+      log::get("preview").error("cannot encode the preview as JPEG; preview stopped");
+      return;
+    }
+    for (int k = 0; k < 2; ++k) {
+      sensor_msgs_msg_dds__CompressedImage_ m{};
+      m.header.frame_id = frame_ids[k].data();
+      m.header.stamp = dds::stamp(clock_.toRealtime(k == 0 ? p->t_left_ns : p->t_right_ns));
+      m.format = format.data();
+      m.data._buffer = jpeg[k].data();
+      m.data._length = m.data._maximum = static_cast<uint32_t>(jpeg[k].size());
+      m.data._release = false;
+      (void)image_writers_[k].write(&m);
+    }
+    previews_sent_.fetch_add(1);
+    preview_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - t0));
+  }
+}
+
+std::string Pipeline::startRecording() {
+  const std::lock_guard lock(recorder_mutex_);
+  if (recorder_) return fmt::format("already recording to {}", recorder_->status().dir.string());
+  // A second recording in the same second gets its own folder (RIG-STAMP.2, ...).
+  const std::filesystem::path base = config_.record_dir / recordingName(config_.rig_id);
+  std::filesystem::path dir = base;
+  std::error_code ec;
+  for (int n = 2; std::filesystem::exists(dir, ec) && n < 1000; ++n)
+    dir = base.string() + "." + std::to_string(n);
+  record::LiveRecorderOptions o;
+  o.dir = dir;
+  o.slots = config_.record_slots;
+  o.min_free_bytes = static_cast<uint64_t>(config_.record_min_free_mb) * 1'000'000;
+  o.resume_check_ms = config_.record_resume ? 2000 : 0;
+  o.manifest.source = "pulsetrackd " + source_->name();
+  o.manifest.rig_id = config_.rig_id;
+  o.manifest.width = source_->rig().left.imageSize().width;
+  o.manifest.height = source_->rig().left.imageSize().height;
+  o.manifest.nominal_fps = config_.fps;
+  auto r = record::LiveRecorder::start(o, source_->rig());
+  if (!r) return r.error().message;
+  recorder_ = std::move(*r);
+  recorder_segment_said_ = 1;
+  recorder_faults_said_ = 0;
+  recording_gen_.fetch_add(1, std::memory_order_release);
+  recorder_live_.store(recorder_.get(), std::memory_order_release);
+  log::get("recorder").info("recording to {}", dir.string());
+  return "";
+}
+
+std::string Pipeline::stopRecording() {
+  const std::lock_guard lock(recorder_mutex_);
+  if (!recorder_) return "";
+  recorder_live_.store(nullptr, std::memory_order_release);
+  // The capture stage may hold the old pointer until the end of its turn (at most one source
+  // call: 100 ms); two epochs later it has let go. Bounded: a stage stuck for 5 s is a fault the
+  // watchdog handles, and the recorder is then kept (leaked) rather than freed under it.
+  const uint64_t e0 = capture_epoch_.load(std::memory_order_acquire);
+  const int64_t until = rt::monotonicNs() + 5'000'000'000;
+  while (capture_running_.load() && capture_epoch_.load(std::memory_order_acquire) < e0 + 2) {
+    if (rt::monotonicNs() > until) {
+      log::get("recorder").error("the capture stage did not let go of the recorder in 5 s");
+      (void)recorder_.release();
+      return "the capture stage did not let go of the recorder";
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  recorder_->stop();
+  const record::RecorderStatus st = recorder_->status();
+  last_recording_ = fmt::format(
+      "stopped: {} frames in {} segments to {} ({} skipped: disk behind; {} disk faults, {} pairs "
+      "not recorded){}{}",
+      st.written, st.segment, st.dir.string(), st.thinned, st.faults, st.unrecorded,
+      st.error.empty() ? "" : "; ", st.error);
+  recorder_.reset();
+  log::get("recorder").info("recorded {}", last_recording_);
+  return last_recording_;
 }
 
 void Pipeline::trackLoop() {
@@ -400,6 +558,10 @@ void Pipeline::publishLoop() {
       list[i].displacement = vec(f.point - f.point0);
       list[i].ncc = static_cast<float>(f.ncc);
       list[i].nmi = static_cast<float>(f.nmi);
+      list[i].left_x = static_cast<float>(f.left[0]);
+      list[i].left_y = static_cast<float>(f.left[1]);
+      list[i].right_x = static_cast<float>(f.right[0]);
+      list[i].right_y = static_cast<float>(f.right[1]);
     }
     fs.features._length = static_cast<uint32_t>(n);
     fs.frame = r->trigger_seq;
@@ -537,13 +699,28 @@ std::string Pipeline::command(const pulsetrack_msgs_msg_dds__Command_& c) {
       roi_requests_.back() = {cc.roi, cc.depth_mm};
       roi_requests_.publish();
       break;
+    case CommandKind::kRecordStart:
+      if (config_.record_dir.empty()) {
+        cc.refusal = fmt::format("command {} 'record_start' refused: no [recorder] dir configured",
+                                 c.request_id);
+      } else if (std::string why = startRecording(); !why.empty()) {
+        cc.refusal = fmt::format("command {} 'record_start' refused: {}", c.request_id, why);
+      }
+      break;
+    case CommandKind::kRecordStop:
+      (void)stopRecording();
+      break;
     case CommandKind::kRefused:
-      commands_refused_.fetch_add(1);
-      command_errors_.back() = cc.refusal;
-      command_errors_.publish();
       break;
   }
-  if (cc.kind != CommandKind::kRefused) commands_accepted_.fetch_add(1);
+  if (!cc.refusal.empty()) {
+    commands_refused_.fetch_add(1);
+    command_errors_.back() = cc.refusal;
+    command_errors_.publish();
+    log::get("command").warn("{}", cc.refusal);
+  } else {
+    commands_accepted_.fetch_add(1);
+  }
   return cc.refusal;
 }
 
@@ -676,10 +853,11 @@ State Pipeline::health(const Notifier& notifier) {
                   frames_.drops() + results_.drops(), track_lat_.percentileNs(0.99) / 1000);
   notifier.status(line);
 
-  pulsetrack_msgs_msg_dds__StageLatency_ st[3]{};
-  const rt::LatencyHistogram* hist[] = {&capture_lat_, &track_lat_, &publish_lat_};
-  const char* names[] = {"capture", "track", "publish"};
-  for (int i = 0; i < 3; ++i) {
+  pulsetrack_msgs_msg_dds__StageLatency_ st[4]{};
+  const rt::LatencyHistogram* hist[] = {&capture_lat_, &track_lat_, &publish_lat_, &preview_lat_};
+  const char* names[] = {"capture", "track", "publish", "preview"};
+  const int nstages = config_.preview.enabled ? 4 : 3;
+  for (int i = 0; i < nstages; ++i) {
     st[i].stage = const_cast<char*>(names[i]);
     st[i].p50_us = static_cast<uint32_t>(hist[i]->percentileNs(0.5) / 1000);
     st[i].p99_us = static_cast<uint32_t>(hist[i]->percentileNs(0.99) / 1000);
@@ -693,8 +871,8 @@ State Pipeline::health(const Notifier& notifier) {
   std::string state_text = line;
   h.state_text = state_text.data();
   h.stages._buffer = st;
-  h.stages._length = 3;
-  h.stages._maximum = 3;
+  h.stages._length = static_cast<uint32_t>(nstages);
+  h.stages._maximum = static_cast<uint32_t>(nstages);
   h.stages._release = false;
   h.fps = static_cast<float>(fps);
   h.frames = tracked();
@@ -711,7 +889,8 @@ State Pipeline::health(const Notifier& notifier) {
   h.source_state = source_state.data();
   std::string trigger_state = source_->triggerState();
   h.trigger_state = trigger_state.data();
-  std::string recorder_state = "off";
+  const std::lock_guard lock(recorder_mutex_);
+  std::string recorder_state = last_recording_.empty() ? "off" : "off (" + last_recording_ + ")";
   if (recorder_ != nullptr) {
     const record::RecorderStatus rs = recorder_->status();
     h.recorder_faults = rs.faults;
@@ -762,6 +941,9 @@ State Pipeline::health(const Notifier& notifier) {
       : !last_refusal_.empty()     ? last_refusal_
                                    : last_source_error_;
   h.last_error = err.data();
+  const cv::Size size = source_->rig().left.imageSize();
+  h.image_width = static_cast<uint32_t>(size.width);
+  h.image_height = static_cast<uint32_t>(size.height);
   (void)health_writer_.write(&h);
   return state;
 }

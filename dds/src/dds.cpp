@@ -78,9 +78,15 @@ Result<Topics> Topics::forNamespace(std::string_view ns) {
     prefix += std::string(ns) + "/";
   }
   prefix += "pulsetrack/";
-  return Topics{prefix + "features",       prefix + "deformation", prefix + "health",
-                prefix + "command",        prefix + "field",       prefix + "targets",
-                prefix + "targets_tracked"};
+  return Topics{prefix + "features",
+                prefix + "deformation",
+                prefix + "health",
+                prefix + "command",
+                prefix + "field",
+                prefix + "targets",
+                prefix + "targets_tracked",
+                prefix + "left/image/compressed",
+                prefix + "right/image/compressed"};
 }
 
 Entity& Entity::operator=(Entity&& o) noexcept {

@@ -324,6 +324,75 @@ TEST(Daemon, ARecordingThatFillsTheDiskStopsCleanlyAndTrackingGoesOn) {
   }
 }
 
+// The recorder started and stopped at run time, as the console and `pulsetrack ctl` do it: each
+// start a new folder that reads back to the frame health counted; a second start while recording
+// is refused with the reason; tracking goes on throughout.
+TEST(Daemon, TheRecorderStartsAndStopsOnCommand) {
+  test::TempDir dir;
+  const uint32_t domain = 95;
+  const auto recordings = dir.path() / "recordings";
+  Daemon d(dir, domain, {"--run-for", "120"},
+           "[recorder]\nenabled = false\ndir = \"" + recordings.string() + "\"\n");
+  Subscriber sub(domain);
+  ASSERT_TRUE(sub.ok());
+  const auto secs = [&] { return sub.secs(); };
+  const std::string ctl = test::cli() + " ctl --domain " + std::to_string(domain) + " ";
+  // Waits (bounded) for a health sample whose recorder_state starts with `prefix`.
+  const auto recorderState = [&](const std::string& prefix) {
+    std::string last;
+    const double until = secs() + 40.0;
+    while (secs() < until) {
+      d.drain(secs());
+      while (sub.health->takeOne(&sub.h, std::chrono::milliseconds(50))) {
+        last = sub.h.recorder_state;
+        if (last.starts_with(prefix)) return last;
+      }
+    }
+    return "(timeout) " + last;
+  };
+  EXPECT_EQ(recorderState("off"), "off");
+  std::vector<uint64_t> counted;
+  for (int run = 0; run < 2; ++run) {
+    const auto start = test::run(ctl + "record-start");
+    ASSERT_EQ(start.exit_code, 0) << start.output;
+    const std::string recording = recorderState("recording");
+    ASSERT_TRUE(recording.starts_with("recording")) << recording;
+    if (run == 0) {  // a second start while recording: refused, and why
+      const auto again = test::run(ctl + "record-start");
+      EXPECT_EQ(again.exit_code, 1) << again.output;
+      EXPECT_NE(again.output.find("'record_start' refused: already recording to"),
+                std::string::npos)
+          << again.output;
+    }
+    int features = 0;  // tracking goes on while recording
+    while (features < 10 && secs() < 100.0) {
+      d.drain(secs());
+      if (sub.features->takeOne(&sub.f, std::chrono::milliseconds(100))) ++features;
+    }
+    EXPECT_EQ(features, 10);
+    const auto stop = test::run(ctl + "record-stop");
+    ASSERT_EQ(stop.exit_code, 0) << stop.output;
+    const std::string stopped = recorderState("off (stopped: ");
+    ASSERT_TRUE(stopped.starts_with("off (stopped: ")) << stopped;
+    counted.push_back(std::stoull(stopped.substr(std::string("off (stopped: ").size())));
+  }
+  kill(d.pid, SIGTERM);
+  EXPECT_EQ(d.wait(secs), 0);
+  std::vector<std::filesystem::path> folders;
+  for (const auto& e : std::filesystem::directory_iterator(recordings)) folders.push_back(e.path());
+  std::sort(folders.begin(), folders.end());
+  ASSERT_EQ(folders.size(), 2U);
+  for (size_t k = 0; k < 2; ++k) {
+    auto r = record::Reader::open(folders[k]);
+    ASSERT_TRUE(r) << r.error().message;
+    EXPECT_GT(r->size(), 5U) << folders[k];
+    EXPECT_EQ(r->size(), counted[k]) << folders[k];
+    EXPECT_EQ(r->meta(0).frame, 0U);  // each recording starts at its own frame 0
+    cv::Mat l, rr;
+    EXPECT_TRUE(r->read(r->size() - 1, l, rr));
+  }
+}
+
 // A subscriber process that dies (SIGKILL, no goodbye) does not disturb the daemon: health
 // stays ok and another subscriber keeps receiving.
 TEST(Daemon, ASubscriberCrashDoesNotDisturbIt) {

@@ -16,7 +16,9 @@
 #include <ctime>
 #include <fstream>
 #include <map>
+#include <opencv2/calib3d.hpp>
 #include <opencv2/core.hpp>
+#include <opencv2/core/persistence.hpp>
 #include <sstream>
 
 #include "daemon/daemon_process.hpp"
@@ -48,12 +50,13 @@ std::map<std::string, std::string> fields(const std::string& line) {
 struct Received {
   int exit_code = -1;
   std::string output;
-  std::vector<std::map<std::string, std::string>> features, deformation, health, field, tracked;
+  std::vector<std::map<std::string, std::string>> features, deformation, health, field, tracked,
+      images;
 };
 
 Received subscribe(uint32_t domain, const std::string& ns, int features, int deformation,
                    int health, int timeout_s, const std::string& command = "", int field = 0,
-                   const std::string& targets = "", int tracked = 0) {
+                   const std::string& targets = "", int tracked = 0, int images = 0) {
   setenv("CYCLONEDDS_URI", dds::kLoopbackUri, 1);
   std::string cmd = std::string(ROS2_SUBSCRIBER) + " --domain " + std::to_string(domain);
   if (!ns.empty()) cmd += " --namespace " + ns;
@@ -64,6 +67,7 @@ Received subscribe(uint32_t domain, const std::string& ns, int features, int def
   if (field > 0) cmd += " --field " + std::to_string(field);
   if (!targets.empty()) cmd += " " + targets;
   if (tracked > 0) cmd += " --tracked " + std::to_string(tracked);
+  if (images > 0) cmd += " --images " + std::to_string(images);
   const test::CommandResult r = test::run(cmd);
   Received got;
   got.exit_code = r.exit_code;
@@ -76,6 +80,7 @@ Received subscribe(uint32_t domain, const std::string& ns, int features, int def
     if (line.rfind("health ", 0) == 0) got.health.push_back(fields(line));
     if (line.rfind("field ", 0) == 0) got.field.push_back(fields(line));
     if (line.rfind("tracked ", 0) == 0) got.tracked.push_back(fields(line));
+    if (line.rfind("image ", 0) == 0) got.images.push_back(fields(line));
   }
   return got;
 }
@@ -173,6 +178,83 @@ TEST(Ros2Output, ANodeBuiltFromTheMsgFilesReceivesANamespacedRigAndNothingOfAnot
   EXPECT_EQ(listen.output.find("rig-b"), std::string::npos) << listen.output;
   EXPECT_EQ(none.exit_code, 1) << none.output;
   EXPECT_TRUE(none.features.empty()) << none.output;
+}
+
+// The cameras' preview as rqt_image_view (or any ROS 2 node) meets it: sensor_msgs/CompressedImage
+// built from the vendored .msg file, a JPEG whose own header gives the scaled size; at most the
+// configured rate (5 Hz here, 10 fps pairs); each feature's pixels inside the full image.
+TEST(Ros2Output, TheCamerasPreviewIsACompressedImageAndTheFeaturesCarryTheirPixels) {
+  test::TempDir dir;
+  const uint32_t domain = 96;
+  DaemonOptions o;
+  o.extra = "[preview]\nrate_hz = 5.0\nscale = 2\n";
+  Daemon d(dir, domain, {"--run-for", "120"}, "", {}, o);
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  const Received got = subscribe(domain, "", 20, 0, 3, 90, "", 0, "", 0, 6);
+  kill(d.pid, SIGTERM);
+  EXPECT_EQ(d.wait(secs), 0);
+  ASSERT_EQ(got.exit_code, 0) << got.output;
+  ASSERT_FALSE(got.health.empty());
+  const auto& h = got.health.back();
+  const int width = std::stoi(h.at("image_width")), height = std::stoi(h.at("image_height"));
+  EXPECT_EQ(width, 1360);  // the simulated rig's cameras
+  EXPECT_EQ(height, 1024);
+  EXPECT_NE(h.at("stages").find("preview:"), std::string::npos) << h.at("stages");
+  std::map<std::string, std::vector<double>> stamps;
+  for (const auto& im : got.images) {
+    EXPECT_EQ(im.at("jpeg"), "1");
+    EXPECT_EQ(im.at("format"), "\"mono8;");  // "mono8; jpeg compressed mono8", split at spaces
+    EXPECT_EQ(std::stoi(im.at("width")), width / 2);
+    EXPECT_EQ(std::stoi(im.at("height")), height / 2);
+    EXPECT_GT(std::stoi(im.at("bytes")), 5000);  // textured cortex, not a blank image
+    EXPECT_EQ(im.at("frame_id"), "pulsetrack_" + im.at("side") + "_camera");
+    stamps[im.at("side")].push_back(stampOf(im));
+  }
+  ASSERT_GE(stamps["left"].size(), 6U);
+  ASSERT_GE(stamps["right"].size(), 6U);
+  // Never faster than 5 Hz: consecutive previews' exposures are >= 0.2 s apart (less the
+  // capture's jitter; a late or lost one only makes the gap longer).
+  for (const auto& [side, t] : stamps)
+    for (size_t i = 1; i < t.size(); ++i) EXPECT_GT(t[i] - t[i - 1], 0.15) << side << " " << i;
+  // Each ok feature's pixels are where its published 3D position projects: the rig file read
+  // with OpenCV's own FileStorage and projectPoints (nothing of the daemon's calibration code).
+  cv::FileStorage rig(std::string(PULSETRACK_SOURCE_DIR) + "/config/rigs/paper-rig.yaml",
+                      cv::FileStorage::READ);
+  ASSERT_TRUE(rig.isOpened());
+  cv::Mat m1, d1, m2, d2, rot, t;
+  rig["M1"] >> m1;
+  rig["D1"] >> d1;
+  rig["M2"] >> m2;
+  rig["D2"] >> d2;
+  rig["R"] >> rot;
+  rig["T"] >> t;
+  cv::Mat rvec;
+  cv::Rodrigues(rot, rvec);
+  const double t_scale = cv::norm(t) > 10.0 ? 1e-3 : 1.0;  // T in mm or in m
+  int checked = 0;
+  double worst = 0.0;
+  for (const auto& f : got.features) {
+    if (f.at("n") == "0" || f.at("status0") != "0") continue;
+    const double lx = std::stod(f.at("lx0")), ly = std::stod(f.at("ly0"));
+    const double rx = std::stod(f.at("rx0")), ry = std::stod(f.at("ry0"));
+    EXPECT_TRUE(lx >= 0 && lx < width && ly >= 0 && ly < height) << lx << "," << ly;
+    EXPECT_TRUE(rx >= 0 && rx < width && ry >= 0 && ry < height) << rx << "," << ry;
+    const std::vector<cv::Point3d> p = {
+        {std::stod(f.at("x0")), std::stod(f.at("y0")), std::stod(f.at("z0"))}};
+    std::vector<cv::Point2d> pl, pr;
+    cv::projectPoints(p, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), m1, d1, pl);
+    cv::projectPoints(p, rvec, t * t_scale, m2, d2, pr);
+    worst = std::max(
+        {worst, std::hypot(pl[0].x - lx, pl[0].y - ly), std::hypot(pr[0].x - rx, pr[0].y - ry)});
+    ++checked;
+  }
+  std::cout << checked << " features' pixels against their 3D positions' projections: worst "
+            << worst << " px\n";
+  EXPECT_GT(checked, 10);
+  EXPECT_LT(worst, 1.5);
 }
 
 // The dense deformation field as rviz2 (or any ROS 2 node) meets it: sensor_msgs/PointCloud2

@@ -118,7 +118,7 @@ TEST(Dds, Ros2MessagesMatchTheIdl) {
     EXPECT_EQ(a, b) << t;
   }
   // sensor_msgs/PointCloud2 (the field) as ROS 2 defines it: the vendored .msg files.
-  for (const char* t : {"PointField", "PointCloud2"}) {
+  for (const char* t : {"PointField", "PointCloud2", "CompressedImage"}) {
     const auto a = idlFields(idl, t);
     const auto b = msgFields(std::string(PULSETRACK_SOURCE_DIR) +
                              "/tests/ros2_compat/vendor/sensor_msgs/msg/" + t + ".msg");

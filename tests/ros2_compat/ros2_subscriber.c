@@ -35,6 +35,10 @@
 //            mean_dz (over the valid points, m) mean_confidence min_z max_z, the middle grid
 //            point's mx my mz mdx mdy mdz mconf, missing="names not found" frame_id
 //   tracked sec nanosec frame set_id signal n, per target k: rkx rky rkz pkx pky pkz dkx dky dkz ck
+//   image side sec nanosec format bytes jpeg(=1: starts with SOI, ends with EOI) width height
+//            (from the JPEG's SOF marker, as a decoder reads them; 0 when none) frame_id
+// --images N: sensor_msgs/CompressedImage samples of each of rt/[NS/]pulsetrack/{left,right}/
+// image/compressed (default 0), with image_transport's subscriber QoS (SensorDataQoS).
 // --targets "x,y,z;x,y,z" (m) [--targets-frame reference|latest]: publishes one
 // pulsetrack_msgs/Targets set (set_id 42, or --set-id N) first, as a ROS 2 node with
 // rclcpp::QoS(1).reliable().transient_local(); --tracked N: TrackedTargets samples to wait for.
@@ -57,10 +61,12 @@
 
 #include "ros2_types.h"
 
-enum { kFeatures, kDeformation, kHealth, kField, kTracked, kTopics };
+enum { kFeatures, kDeformation, kHealth, kField, kTracked, kImageLeft, kImageRight, kTopics };
 
-static const char* const kLeaf[kTopics] = {"features", "deformation", "health", "field",
-                                           "targets_tracked"};
+static const char* const kLeaf[kTopics] = {"features",        "deformation",
+                                           "health",          "field",
+                                           "targets_tracked", "left/image/compressed",
+                                           "right/image/compressed"};
 
 static volatile sig_atomic_t g_stop = 0;
 
@@ -75,7 +81,7 @@ static void usage(FILE* out) {
           "       [--command start|stop|redetect|set_roi] (publishes one Command first)\n"
           "                       [--health N] [--field N] [--timeout S]\n"
           "       [--targets \"x,y,z;...\" [--targets-frame reference|latest] [--set-id N]]\n"
-          "       [--tracked N]\n"
+          "       [--tracked N] [--images N]\n"
           "Subscribes to rt/[NS/]pulsetrack/{features,deformation,health} as a ROS 2 node over\n"
           "rmw_cyclonedds_cpp would (types from the .msg files, ROS 2 QoS, XCDR1, keyless) and\n"
           "prints one line per sample. --features/--deformation/--health: samples to wait for\n"
@@ -191,6 +197,9 @@ static void printFeatures(const pulsetrack_msgs_msg_dds__Features_* m) {
   printf(" x0=%.9g y0=%.9g z0=%.9g", f0 ? f0->position.x : NAN, f0 ? f0->position.y : NAN,
          f0 ? f0->position.z : NAN);
   printf(" status0=%d reason0=%d", f0 ? f0->status : -1, f0 ? f0->reason : -1);
+  printf(" lx0=%.9g ly0=%.9g rx0=%.9g ry0=%.9g", f0 ? (double)f0->left_x : NAN,
+         f0 ? (double)f0->left_y : NAN, f0 ? (double)f0->right_x : NAN,
+         f0 ? (double)f0->right_y : NAN);
   fputs(" frame_id=", stdout);
   putToken(m->header.frame_id);
   putchar('\n');
@@ -220,6 +229,43 @@ static void printDeformation(const pulsetrack_msgs_msg_dds__Deformation_* m) {
            k, m->prediction_horizon._buffer[k], k, p->x, k, p->y, k, p->z, k,
            m->prediction_sigma._buffer[k], k, m->predicted_by_model._buffer[k] ? 1 : 0);
   }
+  fputs(" frame_id=", stdout);
+  putToken(m->header.frame_id);
+  putchar('\n');
+}
+
+// A JPEG's size as a decoder finds it: the first SOFn marker's height and width (ITU T.81 B.2.2),
+// walking the marker segments from SOI. 0 x 0 when there is none.
+static void jpegSize(const uint8_t* d, uint32_t n, uint32_t* w, uint32_t* h) {
+  *w = *h = 0;
+  if (n < 4 || d[0] != 0xFF || d[1] != 0xD8) return;
+  uint32_t i = 2;
+  while (i + 4 <= n) {
+    if (d[i] != 0xFF) return;
+    const uint8_t marker = d[i + 1];
+    const uint32_t len = ((uint32_t)d[i + 2] << 8) | d[i + 3];
+    const bool sof = marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 &&
+                     marker != 0xCC;
+    if (sof && i + 9 <= n) {
+      *h = ((uint32_t)d[i + 5] << 8) | d[i + 6];
+      *w = ((uint32_t)d[i + 7] << 8) | d[i + 8];
+      return;
+    }
+    i += 2 + len;
+  }
+}
+
+static void printImage(const char* side, const sensor_msgs_msg_dds__CompressedImage_* m) {
+  printf("image side=%s", side);
+  printStamp(&m->header);
+  fputs(" format=", stdout);
+  putQuoted(m->format);
+  const uint8_t* d = m->data._buffer;
+  const uint32_t n = m->data._length;
+  const bool jpeg = n >= 4 && d[0] == 0xFF && d[1] == 0xD8 && d[n - 2] == 0xFF && d[n - 1] == 0xD9;
+  uint32_t w = 0, h = 0;
+  jpegSize(d, n, &w, &h);
+  printf(" bytes=%" PRIu32 " jpeg=%d width=%" PRIu32 " height=%" PRIu32, n, jpeg ? 1 : 0, w, h);
   fputs(" frame_id=", stdout);
   putToken(m->header.frame_id);
   putchar('\n');
@@ -257,6 +303,7 @@ static void printHealth(const pulsetrack_msgs_msg_dds__Health_* m) {
          " commands_accepted=%" PRIu64 " commands_refused=%" PRIu64,
          m->frames, m->drops, m->deadline_misses, m->unpaired, m->missing_triggers,
          m->source_faults, m->recorder_faults, m->commands_accepted, m->commands_refused);
+  printf(" image_width=%" PRIu32 " image_height=%" PRIu32, m->image_width, m->image_height);
   // stages="capture:p50/p99/max,track:...", microseconds
   fputs(" stages=\"", stdout);
   for (uint32_t i = 0; i < m->stages._length; ++i) {
@@ -499,7 +546,7 @@ static int matchedWriter(dds_entity_t pp, const dds_topic_descriptor_t* desc, co
 int main(int argc, char** argv) {
   uint32_t domain = UINT32_MAX;
   const char* ns = "";
-  uint32_t want[kTopics] = {1, 1, 1, 0, 0};
+  uint32_t want[kTopics] = {1, 1, 1, 0, 0, 0, 0};
   const char* targets_text = NULL;  // --targets: publish one Targets set first
   uint8_t targets_frame = 0;
   uint32_t set_id = 42;
@@ -527,6 +574,10 @@ int main(int argc, char** argv) {
       ok = ok && parseU32(v, 1000000000u, &want[kField]);
     else if (strcmp(a, "--tracked") == 0)
       ok = ok && parseU32(v, 1000000000u, &want[kTracked]);
+    else if (strcmp(a, "--images") == 0) {
+      ok = ok && parseU32(v, 1000000000u, &want[kImageLeft]);
+      want[kImageRight] = want[kImageLeft];
+    }
     else if (strcmp(a, "--targets") == 0)
       targets_text = v;
     else if (strcmp(a, "--set-id") == 0)
@@ -595,7 +646,8 @@ int main(int argc, char** argv) {
   const dds_topic_descriptor_t* desc[kTopics] = {
       &pulsetrack_msgs_msg_dds__Features__desc, &pulsetrack_msgs_msg_dds__Deformation__desc,
       &pulsetrack_msgs_msg_dds__Health__desc, &sensor_msgs_msg_dds__PointCloud2__desc,
-      &pulsetrack_msgs_msg_dds__TrackedTargets__desc};
+      &pulsetrack_msgs_msg_dds__TrackedTargets__desc, &sensor_msgs_msg_dds__CompressedImage__desc,
+      &sensor_msgs_msg_dds__CompressedImage__desc};
   // features, deformation: rclcpp::SensorDataQoS() = rmw_qos_profile_sensor_data (best effort,
   // keep last 5, volatile). health: rmw_qos_profile_default made keep last 1 and transient
   // local, i.e. rclcpp::QoS(1).reliable().transient_local(): what a ROS 2 node that wants the
@@ -608,7 +660,8 @@ int main(int argc, char** argv) {
   for (int t = 0; t < kTopics; ++t) {
     reader[t] = 0;
     // field and targets_tracked only when asked (a role may not read them)
-    if ((t == kField || t == kTracked) && want[t] == 0) continue;
+    if ((t == kField || t == kTracked || t == kImageLeft || t == kImageRight) && want[t] == 0)
+      continue;
     const dds_entity_t tp = dds_create_topic(pp, desc[t], topic[t], NULL, NULL);
     if (tp < 0) return fail("cannot create the topic", topic[t], tp);
     dds_qos_t* qos = t == kHealth ? ros2Qos(1, true, true) : ros2Qos(5, false, false);
@@ -716,8 +769,10 @@ int main(int argc, char** argv) {
             printHealth(buf[i]);
           else if (t == kField)
             printField(buf[i]);
-          else
+          else if (t == kTracked)
             printTracked(buf[i]);
+          else
+            printImage(t == kImageLeft ? "left" : "right", buf[i]);
           fflush(stdout);
           ++got[t];
         }
@@ -727,7 +782,8 @@ int main(int argc, char** argv) {
     }
     done = got[kFeatures] >= want[kFeatures] && got[kDeformation] >= want[kDeformation] &&
            got[kHealth] >= want[kHealth] && got[kField] >= want[kField] &&
-           got[kTracked] >= want[kTracked];
+           got[kTracked] >= want[kTracked] && got[kImageLeft] >= want[kImageLeft] &&
+           got[kImageRight] >= want[kImageRight];
     if (done) break;
     const int64_t left = deadline - monotonicNs();
     if (left <= 0) break;
@@ -737,8 +793,9 @@ int main(int argc, char** argv) {
   }
 
   printf("summary features=%" PRIu32 " deformation=%" PRIu32 " health=%" PRIu32 " field=%" PRIu32
-         " tracked=%" PRIu32 "\n",
-         got[kFeatures], got[kDeformation], got[kHealth], got[kField], got[kTracked]);
+         " tracked=%" PRIu32 " images=%" PRIu32 "/%" PRIu32 "\n",
+         got[kFeatures], got[kDeformation], got[kHealth], got[kField], got[kTracked],
+         got[kImageLeft], got[kImageRight]);
   fflush(stdout);
   if (!done) {
     fprintf(stderr, "ros2_subscriber: %s after %.3g s:", g_stop ? "interrupted" : "timeout",

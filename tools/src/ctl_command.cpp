@@ -5,6 +5,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <chrono>
 #include <memory>
 #include <optional>
@@ -52,7 +53,8 @@ int runCtl(const CtlArgs& a) {
     return 1;
   }
   pulsetrack_msgs_msg_dds__Command_ c{};
-  std::string rig = a.rig, cmd = a.command == "set-roi" ? "set_roi" : a.command;
+  std::string rig = a.rig, cmd = a.command;
+  std::replace(cmd.begin(), cmd.end(), '-', '_');  // set-roi, record-start, record-stop
   c.rig_id = rig.data();
   c.command = cmd.data();
   c.request_id = a.request_id != 0
@@ -102,10 +104,14 @@ int runCtl(const CtlArgs& a) {
 CommandRunner addCtlCommand(CLI::App& app) {
   auto a = std::make_shared<CtlArgs>();
   CLI::App* cmd = app.add_subcommand(
-      "ctl", "Drive a running pulsetrackd's capture cycle: start, stop, redetect, set-roi.");
-  cmd->add_option("command", a->command, "start | stop | redetect | set-roi")
+      "ctl",
+      "Drive a running pulsetrackd's capture cycle: start, stop, redetect, set-roi, and its "
+      "recorder: record-start, record-stop.");
+  cmd->add_option("command", a->command,
+                  "start | stop | redetect | set-roi | record-start | record-stop")
       ->required()
-      ->check(CLI::IsMember({"start", "stop", "redetect", "set-roi"}));
+      ->check(
+          CLI::IsMember({"start", "stop", "redetect", "set-roi", "record-start", "record-stop"}));
   cmd->add_option("--domain", a->domain, "DDS domain id")
       ->check(CLI::Range(0, 232))
       ->capture_default_str();

@@ -11,7 +11,7 @@
 
 namespace pulsetrack::daemon {
 
-enum class CommandKind { kStart, kStop, kRedetect, kSetRoi, kRefused };
+enum class CommandKind { kStart, kStop, kRedetect, kSetRoi, kRecordStart, kRecordStop, kRefused };
 
 struct CheckedCommand {
   CommandKind kind = CommandKind::kRefused;

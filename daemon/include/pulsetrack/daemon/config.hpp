@@ -19,6 +19,15 @@ namespace pulsetrack::daemon {
 enum class SourceKind { kSim, kReplay, kV4l2, kLibcamera };
 enum class Pace { kRealtime, kFast, kRate };
 
+// [preview]: the cameras' low-rate view (sensor_msgs/CompressedImage, JPEG), off the real-time
+// path: rt/[NS/]pulsetrack/{left,right}/image/compressed.
+struct PreviewConfig {
+  bool enabled = true;
+  double rate_hz = 5.0;   // at most this often (0.2 to 30)
+  int scale = 2;          // each side divided by this (1 to 8)
+  int jpeg_quality = 80;  // 10 to 100
+};
+
 struct DaemonConfig {
   std::string rig_id = "rig-0";
   uint32_t domain_id = 0;
@@ -59,6 +68,7 @@ struct DaemonConfig {
   vision::TrackerConfig tracker;
   vision::FieldConfig field;            // [field]: the dense deformation field (rt/.../field)
   vision::PredictionConfig prediction;  // [prediction]: latency compensation, with deformation
+  PreviewConfig preview;
   bool lock_memory = true;
   double deadline_ms = 20.0;
   rt::ThreadPolicy capture{80, -1}, track{70, -1}, publish{60, -1};

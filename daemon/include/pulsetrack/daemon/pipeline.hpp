@@ -10,10 +10,19 @@
 //            and sends them; then the dense deformation field (vision::DeformationField) as a
 //            sensor_msgs/PointCloud2; the health sample, systemd STATUS and the watchdog ping from
 //            health() called by the main thread, which also re-measures the system clock.
+//   preview: at [preview] rate_hz the capture stage copies a pair into a preallocated slot
+//            (previews_: a memcpy, after the pair went to the track stage); this stage, at normal
+//            priority, scales and JPEG-encodes it and sends sensor_msgs/CompressedImage on
+//            rt/.../{left,right}/image/compressed (the console's and rqt_image_view's view).
+//
+// The recorder is started and stopped at run time (config, or the record_start/record_stop
+// commands): the capture stage reads it through an atomic pointer and an epoch (no lock on the
+// real-time path); the command and health threads share its owner under a mutex.
 
 #include <array>
 #include <atomic>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <thread>
 #include <vector>
@@ -53,6 +62,13 @@ struct TrackingText {
   vision::SessionState state = vision::SessionState::kNoFeatures;
 };
 
+// A pair for the preview stage (full size, preallocated; scaled and encoded off the capture).
+struct PreviewFrame {
+  cv::Mat left, right;
+  uint64_t trigger_seq = 0;
+  int64_t t_left_ns = 0, t_right_ns = 0;
+};
+
 // A robot's Targets set, handed from the command thread to the publish stage.
 inline constexpr size_t kMaxTargets = 256;
 struct TargetSet {
@@ -69,9 +85,8 @@ const char* toString(State s);
 
 class Pipeline {
  public:
-  // `recorder` (optional, not owned) receives every captured pair, off the real-time path.
   Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSource> source,
-           const dds::Participant& participant, record::LiveRecorder* recorder = nullptr);
+           const dds::Participant& participant);
   ~Pipeline();
   Pipeline(const Pipeline&) = delete;
   Pipeline& operator=(const Pipeline&) = delete;
@@ -98,6 +113,13 @@ class Pipeline {
   // Called from the command thread; hands over to the track stage without a lock.
   // Returns "" when accepted, else the reason.
   std::string command(const pulsetrack_msgs_msg_dds__Command_& c);
+  // A pair for the preview stage (full size, preallocated; scaled and encoded off the capture).
+  struct PreviewFrame {
+    cv::Mat left, right;
+    uint64_t trigger_seq = 0;
+    int64_t t_left_ns = 0, t_right_ns = 0;
+  };
+
   // A robot's Targets set (rt/.../targets): checked here, followed by the publish stage from the
   // next pair (answers on rt/.../targets_tracked). Counted with the commands; "" or the reason.
   std::string targets(const pulsetrack_msgs_msg_dds__Targets_& t);
@@ -106,18 +128,41 @@ class Pipeline {
   // Times the source went away (a fault, or no pair for 1 s or three trigger periods).
   [[nodiscard]] uint64_t sourceFaults() const { return source_faults_.load(); }
 
+  // The recorder ([recorder] dir, a new RIG-YYYYmmdd-HHMMSS folder each time): every captured
+  // pair from now on, off the real-time path. "" when started, else why not (already recording,
+  // the folder cannot be made). Any thread but the stages'.
+  std::string startRecording();
+  // Stops it and says what it recorded ("" when it was not recording). Waits (bounded) until the
+  // capture stage has let go of it.
+  std::string stopRecording();
+  // Previews sent (each a left and a right image).
+  [[nodiscard]] uint64_t previewsSent() const { return previews_sent_.load(); }
+
  private:
   void captureLoop();
   void trackLoop();
   void publishLoop();
+  void previewLoop();
   void commandLoop();
+  void offerPreview(const Frame& f, int64_t now) noexcept;
 
   DaemonConfig config_;
   std::unique_ptr<drivers::CameraSource> source_;
-  record::LiveRecorder* recorder_;
+  // The recorder: owned under recorder_mutex_ (command and health threads), read by the capture
+  // stage through recorder_live_; capture_epoch_ counts the capture's loop turns, so that
+  // stopRecording knows when the stage has let go of it.
+  std::mutex recorder_mutex_;
+  std::unique_ptr<record::LiveRecorder> recorder_;
+  std::atomic<record::LiveRecorder*> recorder_live_{nullptr};
+  std::atomic<uint64_t> capture_epoch_{0};
+  std::atomic<bool> capture_running_{false};
+  std::string last_recording_;      // under recorder_mutex_: what the last recording did
   uint64_t recorded_ = UINT64_MAX;  // capture thread: the trigger number of the recording's frame 0
+  std::atomic<uint64_t> recording_gen_{0};  // recordings started
+  uint64_t recording_of_ = 0;               // capture thread: recorded_'s recording
   const dds::Participant& participant_;
   dds::Writer features_writer_, deformation_writer_, health_writer_, field_writer_, targets_writer_;
+  dds::Writer image_writers_[2];           // the preview: left, right
   rt::LatestSlot<TargetSet> target_sets_;  // command thread -> publish stage
   rt::LatestSlot<Frame> frames_;
   rt::LatestSlot<TrackResult> results_;
@@ -126,6 +171,13 @@ class Pipeline {
   uint64_t handed_ = 0;                // capture thread: pairs handed to the track stage
   rt::Heartbeat capture_beat_, track_beat_, publish_beat_;
   rt::LatencyHistogram capture_lat_, track_lat_, publish_lat_;
+  rt::LatestSlot<PreviewFrame> previews_;                // capture -> preview
+  std::atomic<uint64_t> preview_seq_{0};                 // wake-ups of the preview stage
+  int64_t preview_period_ns_ = 0, last_preview_ns_ = 0;  // capture thread
+  rt::LatencyHistogram preview_copy_lat_;                // the capture stage's copy
+  rt::LatencyHistogram preview_lat_;                     // scale, encode and send (both images)
+  std::atomic<uint64_t> previews_sent_{0};
+  std::thread preview_;
   std::atomic<uint64_t> tracked_{0}, processed_{0}, deadline_misses_{0};
   rt::SystemClock clock_;
   rt::LatestSlot<TrackingText> tracking_text_;  // track -> health, on a change

@@ -32,6 +32,9 @@ struct Topics {
   std::string features, deformation, health, command;
   std::string field;                     // the dense deformation field, sensor_msgs/PointCloud2
   std::string targets, targets_tracked;  // points a robot wants followed, and the answers
+  // The cameras' low-rate preview, sensor_msgs/CompressedImage: .../{left,right}/image/compressed
+  // (image_transport's "compressed" transport of .../{left,right}/image).
+  std::string image_left, image_right;
   // The namespace follows ROS 2's rules for names: segments of letters, digits and underscores
   // separated by '/', none starting with a digit; a leading '/' is allowed (ROS 2's absolute
   // form), a trailing one is not. Empty: no namespace.
