@@ -17,6 +17,8 @@
 #include <cmath>
 #include <iostream>
 #include <map>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core/persistence.hpp>
 #include <opencv2/imgproc.hpp>
 #include <set>
 
@@ -307,6 +309,77 @@ TEST(TrackingSession, StopStartAndRoiChangesRestartTheSignalAndSayWhy) {
   EXPECT_TRUE(session.last().deformation.continuous);
   EXPECT_EQ(session.last().deformation.detections, 2U);
   EXPECT_TRUE(pair(8).deformation.continuous);
+}
+
+}  // namespace
+}  // namespace pulsetrack::vision
+
+namespace pulsetrack::vision {
+namespace {
+
+// The right ROI derived from a left one (the console's ROI drawing): every point the left ROI sees
+// between depth - tol and depth + tol lands inside it, by OpenCV's own undistortPoints and
+// projectPoints on the rig file (nothing of the rig code under test), and it is not much larger.
+TEST(TrackingSession, TheRightRoiForALeftOneHoldsWhatTheLeftSeesAtThoseDepths) {
+  const std::string path = std::string(PULSETRACK_SOURCE_DIR) + "/config/rigs/paper-rig.yaml";
+  auto rig = loadRig(path);
+  ASSERT_TRUE(rig) << rig.error().message;
+  cv::FileStorage fs(path, cv::FileStorage::READ);
+  cv::Mat m1, d1, m2, d2, rot, t, rvec;
+  fs["M1"] >> m1;
+  fs["D1"] >> d1;
+  fs["M2"] >> m2;
+  fs["D2"] >> d2;
+  fs["R"] >> rot;
+  fs["T"] >> t;
+  cv::Rodrigues(rot, rvec);
+  for (const cv::Rect& left :
+       {cv::Rect(483, 339, 400, 340), cv::Rect(10, 10, 300, 200), cv::Rect(900, 700, 400, 300)}) {
+    const double depth = 450.0, tol = 20.0;
+    const cv::Rect right = TrackingSession::rightRoiFor(*rig, left, depth, tol);
+    ASSERT_FALSE(right.empty()) << left;
+    std::vector<cv::Point2d> px;
+    for (int i = 0; i <= 20; ++i)
+      for (int j = 0; j <= 20; ++j)
+        px.emplace_back(left.x + left.width * i / 20.0, left.y + left.height * j / 20.0);
+    std::vector<cv::Point2d> norm;
+    cv::undistortPoints(px, norm, m1, d1);
+    std::vector<cv::Point3d> pts;
+    for (const double z : {depth - tol, depth, depth + tol})
+      for (const cv::Point2d& n : norm) pts.emplace_back(n.x * z, n.y * z, z);
+    std::vector<cv::Point2d> pr;
+    cv::projectPoints(pts, rvec, t, m2, d2, pr);
+    double x0 = 1e9, y0 = 1e9, x1 = -1e9, y1 = -1e9;
+    int outside = 0, in_image = 0;
+    for (const cv::Point2d& q : pr) {
+      if (q.x < 0 || q.y < 0 || q.x >= 1360 || q.y >= 1024) continue;  // off the right image
+      ++in_image;
+      x0 = std::min(x0, q.x);
+      y0 = std::min(y0, q.y);
+      x1 = std::max(x1, q.x);
+      y1 = std::max(y1, q.y);
+      if (!right.contains(cv::Point(static_cast<int>(q.x), static_cast<int>(q.y)))) ++outside;
+    }
+    ASSERT_GT(in_image, 100) << left;
+    EXPECT_EQ(outside, 0) << left << " -> " << right;
+    // Tight: within 3 px of the hull's box on each side the image's edge did not cut (where it
+    // did, the samples stop short of the edge by up to a grid step).
+    if (right.x > 0) {
+      EXPECT_LE(x0 - right.x, 3.0) << right;
+    }
+    if (right.y > 0) {
+      EXPECT_LE(y0 - right.y, 3.0) << right;
+    }
+    if (right.br().x < 1360) {
+      EXPECT_LE(right.x + right.width - x1, 3.0) << right;
+    }
+    if (right.br().y < 1024) {
+      EXPECT_LE(right.y + right.height - y1, 3.0) << right;
+    }
+  }
+  // Not in front of the camera, or a nonsense ROI: nothing.
+  EXPECT_TRUE(TrackingSession::rightRoiFor(*rig, {483, 339, 400, 340}, 10.0, 20.0).empty());
+  EXPECT_TRUE(TrackingSession::rightRoiFor(*rig, {483, 339, 0, 340}, 450.0, 20.0).empty());
 }
 
 }  // namespace

@@ -74,6 +74,37 @@ Result<void> TrackingSession::checkRoi(const StereoRig& rig, const Roi& roi,
   return {};
 }
 
+cv::Rect TrackingSession::rightRoiFor(const StereoRig& rig, const cv::Rect& left, double depth_mm,
+                                      double tolerance_mm) {
+  const double near = depth_mm - tolerance_mm, far = depth_mm + tolerance_mm;
+  if (!(near > 0.0) || !std::isfinite(far) || left.width <= 0 || left.height <= 0) return {};
+  double x0 = INFINITY, y0 = INFINITY, x1 = -INFINITY, y1 = -INFINITY;
+  constexpr int kPerSide = 8;  // distortion bends the edges: points along them, not corners only
+  for (int k = 0; k <= kPerSide; ++k) {
+    const double u = left.x + left.width * k / static_cast<double>(kPerSide);
+    const double v = left.y + left.height * k / static_cast<double>(kPerSide);
+    for (const cv::Vec2d& px : {cv::Vec2d(u, left.y), cv::Vec2d(u, left.y + left.height),
+                                cv::Vec2d(left.x, v), cv::Vec2d(left.x + left.width, v)}) {
+      const Ray ray = rig.backProjectLeft(px);
+      if (!(ray.direction[2] > 0.0)) continue;
+      for (const double z : {near, far}) {
+        const double s = (z - ray.origin[2]) / ray.direction[2];
+        const cv::Vec2d q = rig.projectRight(ray.origin + s * ray.direction);
+        if (!std::isfinite(q[0]) || !std::isfinite(q[1])) continue;
+        x0 = std::min(x0, q[0]);
+        y0 = std::min(y0, q[1]);
+        x1 = std::max(x1, q[0]);
+        y1 = std::max(y1, q[1]);
+      }
+    }
+  }
+  if (!(x1 >= x0 && y1 >= y0)) return {};
+  const cv::Size size = rig.right.imageSize();
+  const cv::Rect box(cv::Point(static_cast<int>(std::floor(x0)), static_cast<int>(std::floor(y0))),
+                     cv::Point(static_cast<int>(std::ceil(x1)), static_cast<int>(std::ceil(y1))));
+  return box & cv::Rect(0, 0, size.width, size.height);
+}
+
 void TrackingSession::setReason(std::string_view text) noexcept {
   const size_t n = std::min(text.size(), reason_.size());
   if (n == reason_len_ && std::memcmp(reason_.data(), text.data(), n) == 0) return;

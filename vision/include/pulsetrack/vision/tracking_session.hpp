@@ -99,6 +99,12 @@ class TrackingSession {
   // Whether an ROI pair can be tracked in the rig's images: inside them, at least two templates
   // on each side, a positive depth tolerance. The error names the ROI and what is wrong.
   static Result<void> checkRoi(const StereoRig& rig, const Roi& roi, double depth_tolerance_mm);
+  // The right ROI that sees what `left` sees at depth_mm +- tolerance_mm (along the left
+  // camera's axis): the left ROI's edge, back-projected to both depths and projected into the
+  // right camera (both cameras' distortion included), bounded and clamped to the right image.
+  // An empty rect when none of it lands in the image or the depths are not in front.
+  static cv::Rect rightRoiFor(const StereoRig& rig, const cv::Rect& left, double depth_mm,
+                              double tolerance_mm);
 
   // Between pairs, on the session's thread. setRoi() and start() detect afresh in the next pair
   // (a new signal); an ROI that fails checkRoi() is kept out (the reason says why) until a good
