@@ -7,7 +7,10 @@
 // counts from its health. With
 // --security, the same with DDS Security (scripts/security's keystore: authentication, signed
 // RTPS, encrypted topics), to see what security costs.
+// --preview, the cameras' preview (JPEG at 5 Hz, read by a subscriber as the console reads it) on
+// or off, to see that it leaves the tracking's latency as it was.
 //   daemon_latency [--seconds S] [--rates 30,60,120] [--features N] [--security off|on|both]
+//                  [--preview off|on|both]
 // The issue's run is 5 minutes per rate: --seconds 300.
 
 #include <spawn.h>
@@ -24,6 +27,7 @@
 #include <sstream>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <utility>
 #include <vector>
 
@@ -57,6 +61,11 @@ int main(int argc, char** argv) try {
                  "DDS Security: off, on (scripts/security's keystore) or both, one after the other")
       ->check(CLI::IsMember({"off", "on", "both"}))
       ->capture_default_str();
+  std::string preview = "on";
+  app.add_option("--preview", preview,
+                 "The cameras' preview (5 Hz JPEG, a subscriber reading it): off, on or both")
+      ->check(CLI::IsMember({"off", "on", "both"}))
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   setenv("CYCLONEDDS_URI", pulsetrack::dds::kLoopbackUri, 1);
   const auto dir =
@@ -84,21 +93,26 @@ int main(int argc, char** argv) try {
     }
   }
   std::printf("frame handed over -> features sample received by another process (DDS, loopback)\n");
-  std::printf("%-10s %6s %8s %9s %9s %9s %9s %7s %8s %9s\n", "DDS", "rate", "samples", "p50 us",
-              "p99 us", "p99.9 us", "max us", "lost", "drops", "deadline");
+  std::printf("%-10s %-8s %6s %8s %9s %9s %9s %9s %7s %8s %9s %s\n", "DDS", "preview", "rate",
+              "samples", "p50 us", "p99 us", "p99.9 us", "max us", "lost", "drops", "deadline",
+              "preview stage p50/p99 us, capture's copy p50/p99 us, images received");
   int domain = 90;
-  std::vector<std::pair<bool, double>> runs;
+  std::vector<std::tuple<bool, bool, double>> runs;
   for (const bool secured : {false, true}) {
     if ((secured && security == "off") || (!secured && security == "on")) continue;
-    for (const double rate : rates) runs.emplace_back(secured, rate);
+    for (const bool with_preview : {false, true}) {
+      if ((with_preview && preview == "off") || (!with_preview && preview == "on")) continue;
+      for (const double rate : rates) runs.emplace_back(secured, with_preview, rate);
+    }
   }
-  for (const auto& [secured, rate] : runs) {
+  for (const auto& [secured, with_preview, rate] : runs) {
     const auto cfg = dir / "pulsetrackd.toml";
     std::ofstream(cfg) << "rig_id = \"bench\"\n[dds]\ndomain_id = " << domain
                        << "\n[source]\nkind = \"replay\"\nrecording = \"" << rec
                        << "\"\npace = \"rate\"\nfps = " << rate
                        << "\nloop = true\npreload = true\n[tracker]\nmax_features = " << features
-                       << "\n[health]\nperiod_ms = 500\n";
+                       << "\n[health]\nperiod_ms = 500\n[preview]\nenabled = "
+                       << (with_preview ? "true" : "false") << "\n";
     if (secured) {
       std::ofstream(cfg, std::ios::app)
           << "[security]\nenclave = \"" << keystore << "/enclaves/pulsetrack/daemon\"\n";
@@ -120,6 +134,19 @@ int main(int argc, char** argv) try {
                                                   &pulsetrack_msgs_msg_dds__Health__desc,
                                                   pulsetrack::dds::Profile::kTransientLocal);
     if (!p || !reader || !health) return 1;
+    // The preview read as the console reads it (both cameras), so that its cost is all there.
+    std::vector<pulsetrack::dds::Reader> images;
+    if (with_preview) {
+      for (const char* side : {"left", "right"}) {
+        auto r = pulsetrack::dds::Reader::create(
+            *p, (std::string("rt/pulsetrack/") + side + "/image/compressed").c_str(),
+            &sensor_msgs_msg_dds__CompressedImage__desc, pulsetrack::dds::Profile::kSensorData);
+        if (!r) return 1;
+        images.push_back(std::move(*r));
+      }
+    }
+    sensor_msgs_msg_dds__CompressedImage_ im{};
+    uint64_t images_received = 0;
     pulsetrack_msgs_msg_dds__Features_ f{};
     pulsetrack_msgs_msg_dds__Health_ h{};
     std::vector<double> us;
@@ -128,6 +155,8 @@ int main(int argc, char** argv) try {
     const int64_t t_start = pulsetrack::rt::monotonicNs() + 2'000'000'000;
     const int64_t t_end = t_start + static_cast<int64_t>(seconds * 1e9);
     while (pulsetrack::rt::monotonicNs() < t_end) {
+      for (const auto& ir : images)
+        while (ir.takeOne(&im, std::chrono::milliseconds(0))) ++images_received;
       if (!reader->takeOne(&f, std::chrono::milliseconds(100))) continue;
       // The stamp is on the system clock (the daemon maps the hand-over time onto it).
       if (pulsetrack::rt::monotonicNs() < t_start) continue;
@@ -149,15 +178,26 @@ int main(int argc, char** argv) try {
                                       static_cast<size_t>(q * static_cast<double>(us.size())))];
     };
     const uint64_t expected = received > 0 ? last - first + 1 : 0;
-    std::printf("%-10s %4.0f Hz %8zu %9.0f %9.0f %9.0f %9.0f %7llu %8llu %9llu\n",
-                secured ? "secured" : "unsecured", rate, us.size(), pct(0.5), pct(0.99), pct(0.999),
-                us.empty() ? 0.0 : us.back(), static_cast<unsigned long long>(expected - received),
+    std::string stages;
+    for (uint32_t i = 0; i < h.stages._length; ++i) {
+      const std::string name = h.stages._buffer[i].stage;
+      if (name.rfind("preview", 0) == 0) {
+        stages += std::to_string(h.stages._buffer[i].p50_us) + "/" +
+                  std::to_string(h.stages._buffer[i].p99_us) + "  ";
+      }
+    }
+    if (with_preview) stages += std::to_string(images_received);
+    std::printf("%-10s %-8s %4.0f Hz %8zu %9.0f %9.0f %9.0f %9.0f %7llu %8llu %9llu %s\n",
+                secured ? "secured" : "unsecured", with_preview ? "on" : "off", rate, us.size(),
+                pct(0.5), pct(0.99), pct(0.999), us.empty() ? 0.0 : us.back(),
+                static_cast<unsigned long long>(expected - received),
                 static_cast<unsigned long long>(h.drops),
-                static_cast<unsigned long long>(h.deadline_misses));
+                static_cast<unsigned long long>(h.deadline_misses), stages.c_str());
     std::fflush(stdout);
     waitExit(d);
     dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);
     dds_sample_free(&h, &pulsetrack_msgs_msg_dds__Health__desc, DDS_FREE_CONTENTS);
+    dds_sample_free(&im, &sensor_msgs_msg_dds__CompressedImage__desc, DDS_FREE_CONTENTS);
     ++domain;
   }
   std::filesystem::remove_all(dir);

@@ -853,10 +853,12 @@ State Pipeline::health(const Notifier& notifier) {
                   frames_.drops() + results_.drops(), track_lat_.percentileNs(0.99) / 1000);
   notifier.status(line);
 
-  pulsetrack_msgs_msg_dds__StageLatency_ st[4]{};
-  const rt::LatencyHistogram* hist[] = {&capture_lat_, &track_lat_, &publish_lat_, &preview_lat_};
-  const char* names[] = {"capture", "track", "publish", "preview"};
-  const int nstages = config_.preview.enabled ? 4 : 3;
+  // With the preview: its stage (scale, encode, send) and the capture stage's copy for it.
+  pulsetrack_msgs_msg_dds__StageLatency_ st[5]{};
+  const rt::LatencyHistogram* hist[] = {&capture_lat_, &track_lat_, &publish_lat_, &preview_lat_,
+                                        &preview_copy_lat_};
+  const char* names[] = {"capture", "track", "publish", "preview", "preview_copy"};
+  const int nstages = config_.preview.enabled ? 5 : 3;
   for (int i = 0; i < nstages; ++i) {
     st[i].stage = const_cast<char*>(names[i]);
     st[i].p50_us = static_cast<uint32_t>(hist[i]->percentileNs(0.5) / 1000);

@@ -21,7 +21,8 @@
 // are always "quoted" (C escapes: \" \\ \n \t \xHH), rig and frame_id only when they need it;
 // doubles %.17g (features' x0 y0 z0 %.9g, nan without features; health fps %.9g), bools 0/1:
 //   features frame sec nanosec rig n ok(=status 0) first_id(-1: none) x0 y0 z0 status0 reason0
-//            frame_id
+//            lx0 ly0 rx0 ry0 (its pixels), lxmin lymin lxmax lymax (the ok features' left pixels'
+//            bounding box) frame_id
 //   deformation frame sec nanosec rig dx dy dz vx vy vz ok total cx cy cz velocity_delay
 //            displacement_sigma velocity_sigma detections continuous np (horizons), per horizon k:
 //            phk pdxk pdyk pdzk psk pmk, frame_id
@@ -200,6 +201,19 @@ static void printFeatures(const pulsetrack_msgs_msg_dds__Features_* m) {
   printf(" lx0=%.9g ly0=%.9g rx0=%.9g ry0=%.9g", f0 ? (double)f0->left_x : NAN,
          f0 ? (double)f0->left_y : NAN, f0 ? (double)f0->right_x : NAN,
          f0 ? (double)f0->right_y : NAN);
+  // The ok features' left pixels' bounding box (nan without one).
+  double box[4] = {INFINITY, INFINITY, -INFINITY, -INFINITY};
+  for (uint32_t i = 0; i < fs->_length; ++i) {
+    const pulsetrack_msgs_msg_dds__Feature_* f = &fs->_buffer[i];
+    if (f->status != 0) continue;
+    const double x = f->left_x, y = f->left_y;
+    if (x < box[0]) box[0] = x;
+    if (y < box[1]) box[1] = y;
+    if (x > box[2]) box[2] = x;
+    if (y > box[3]) box[3] = y;
+  }
+  if (ok == 0) box[0] = box[1] = box[2] = box[3] = NAN;
+  printf(" lxmin=%.9g lymin=%.9g lxmax=%.9g lymax=%.9g", box[0], box[1], box[2], box[3]);
   fputs(" frame_id=", stdout);
   putToken(m->header.frame_id);
   putchar('\n');

@@ -25,6 +25,10 @@ int main(int argc, char** argv) try {
   runners["ctl"] = pulsetrack::tools::addCtlCommand(app);
   runners["validate"] = pulsetrack::tools::addValidateCommand(app);
   runners["analyze"] = pulsetrack::tools::addAnalyzeCommand(app);
+#ifdef PULSETRACK_HAS_CONSOLE
+  runners["console"] = pulsetrack::tools::addConsoleCommand(app);
+  runners["console-user"] = pulsetrack::tools::addConsoleUserCommand(app);
+#endif
   CLI11_PARSE(app, argc, argv);
   for (const CLI::App* sub : app.get_subcommands()) {
     return runners.at(sub->get_name())();

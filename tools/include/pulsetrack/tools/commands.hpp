@@ -20,6 +20,10 @@ CommandRunner addListenCommand(CLI::App& app);
 CommandRunner addCtlCommand(CLI::App& app);
 CommandRunner addValidateCommand(CLI::App& app);
 CommandRunner addAnalyzeCommand(CLI::App& app);
+#ifdef PULSETRACK_HAS_CONSOLE
+CommandRunner addConsoleCommand(CLI::App& app);
+CommandRunner addConsoleUserCommand(CLI::App& app);
+#endif
 
 // Renders a scene file into a recording folder as `pulsetrack simulate` does; 0 on success.
 int simulateScene(const std::string& scene, const std::string& out, bool quiet);
