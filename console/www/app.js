@@ -12,6 +12,7 @@
   // constants
   const WINDOW_S = 60;            // displacement plot span
   const KEEP_S = 65;              // ring buffer keeps a little more than the plot shows
+  const GAP_S = 0.5;              // samples further apart than this: a gap in the plot
   const RING_CAP = 8192;          // > 65 s at 120 Hz
   const REDRAW_MS = 100;          // plots redraw at most ~10 Hz
   const LINK_SILENCE_MS = 5000;   // no `link` event for this long while the stream is open: "silent"
@@ -976,15 +977,20 @@
   function redrawDisplacement() {
     const now = displacementNow();
     if (now === null || !disp.plot) return;
-    const n = ring.count;
-    const x = new Array(n), dx = new Array(n), dy = new Array(n), dz = new Array(n), m = new Array(n);
-    for (let k = 0; k < n; k++) {
+    // A gap in the samples (an outage, tracking stopped) is drawn as a gap, not bridged: a null
+    // point between samples more than GAP_S apart (uPlot does not span nulls).
+    const x = [], dx = [], dy = [], dz = [], m = [];
+    for (let k = 0; k < ring.count; k++) {
       const i = (ring.start + k) % RING_CAP;
-      x[k] = ring.t[i] - now;
-      dx[k] = ring.dx[i];
-      dy[k] = ring.dy[i];
-      dz[k] = ring.dz[i];
-      m[k] = Math.hypot(dx[k], dy[k], dz[k]);
+      if (k > 0 && ring.t[i] - ring.t[(i + RING_CAP - 1) % RING_CAP] > GAP_S) {
+        x.push(ring.t[i] - now - 1e-3);
+        dx.push(null); dy.push(null); dz.push(null); m.push(null);
+      }
+      x.push(ring.t[i] - now);
+      dx.push(ring.dx[i]);
+      dy.push(ring.dy[i]);
+      dz.push(ring.dz[i]);
+      m.push(Math.hypot(ring.dx[i], ring.dy[i], ring.dz[i]));
     }
     disp.plot.setData([x, dx, dy, dz, m]);
   }
@@ -1063,7 +1069,8 @@
     ctx.font = `600 ${Math.round(12 * dpr)}px system-ui, sans-serif`;
     ctx.textAlign = "left";        // uPlot leaves its axis alignment behind
     ctx.textBaseline = "bottom";
-    const shown = spec.peaks.filter((p) => p.frequency_hz <= SPECTRUM_MAX_HZ)
+    // Only the named peaks are labelled on the plot (the list below has every peak).
+    const shown = spec.peaks.filter((p) => p.frequency_hz <= SPECTRUM_MAX_HZ && peakName(p) !== "peak")
       .map((p) => ({ p, cx: u.valToPos(p.frequency_hz, "x", true), cy: u.valToPos(p.amplitude_mm, "y", true) }));
     const placed = [{ x0: left, x1: right, y0: bottom - 10 * dpr, y1: bottom }];   // noise floor
     const free = (box) => placed.every((o) =>

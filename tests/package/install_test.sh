@@ -45,6 +45,30 @@ out=$(systemd-analyze verify /lib/systemd/system/pulsetrackd.service 2>&1) ||
   fail "systemd-analyze verify: $out"
 [[ -z $out ]] || fail "systemd-analyze verify warned: $out"
 pass "systemd-analyze verify pulsetrackd.service: clean"
+out=$(systemd-analyze verify /lib/systemd/system/pulsetrack-console.service 2>&1) ||
+  fail "systemd-analyze verify pulsetrack-console.service: $out"
+[[ -z $out ]] || fail "systemd-analyze verify pulsetrack-console.service warned: $out"
+pass "systemd-analyze verify pulsetrack-console.service: clean"
+
+# The console as its unit would start it: the installed page, a certificate and users made with
+# the installed tools; it serves the login page over TLS and refuses the API without a login.
+ks=/tmp/console-ks
+/usr/share/pulsetrack/security/security init "$ks" >/dev/null
+/usr/share/pulsetrack/security/security tls "$ks" console >/dev/null
+echo "installed-pass-1" | pulsetrack console-user --users /tmp/console-users --user tech >/dev/null
+pulsetrack console --port 18443 --cert "$ks/tls/console/cert.pem" --key "$ks/tls/console/key.pem" \
+  --users /tmp/console-users --rig /etc/pulsetrack/rigs/paper-rig.yaml >/tmp/console.log 2>&1 &
+console=$!
+for _ in $(seq 100); do grep -q "console: serving" /tmp/console.log && break; sleep 0.2; done
+grep -q "console: serving" /tmp/console.log || fail "the console did not start: $(cat /tmp/console.log)"
+page=$(curl -sS --cacert "$ks/tls/console/ca.cert.pem" https://localhost:18443/login.html 2>&1) ||
+  fail "the console's page: $page"
+page+=" events $(curl -sS -o /dev/null -w '%{http_code}' --cacert "$ks/tls/console/ca.cert.pem" \
+  https://localhost:18443/api/events 2>&1)"
+kill $console
+grep -q "pulsetrack console" <<<"$page" || fail "the login page is not the console's: $page"
+grep -q "events 401" <<<"$page" || fail "the API answered without a login: $page"
+pass "pulsetrack console serves the installed page over TLS (login page; the API 401 without a login)"
 
 entry=$(getent passwd pulsetrack) || fail "no user pulsetrack"
 [[ $(cut -d: -f6 <<<"$entry") == /var/lib/pulsetrack ]] || fail "home: $entry"
@@ -98,7 +122,9 @@ chmod 755 "$check"
 mirror=http://deb.debian.org/debian
 security=http://deb.debian.org/debian-security
 echo "install_test: a clean Debian 12 root in $root, then apt install ./$(basename "$deb")"
-mmdebstrap --variant=minbase --mode=root --include=udev \
+# udev: the rule's check; openssl (scripts/security) and curl: the console's check, as a technician
+# would have them.
+mmdebstrap --variant=minbase --mode=root --include=udev,openssl,curl \
   --customize-hook="copy-in $deb /root" \
   --customize-hook="copy-in $check /root" \
   --customize-hook="chroot \"\$1\" apt-get install -y -q /root/$(basename "$deb")" \
