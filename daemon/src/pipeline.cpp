@@ -82,11 +82,8 @@ Pipeline::Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSo
     f.pair.right.create(size, CV_8UC1);
   }
   if (config_.preview.enabled) {
-    preview_period_ns_ = static_cast<int64_t>(1e9 / config_.preview.rate_hz);
-    for (PreviewFrame& p : previews_.slots()) {
-      p.left.create(size, CV_8UC1);
-      p.right.create(size, CV_8UC1);
-    }
+    preview_tap_ =
+        std::make_unique<PreviewTap>(size, static_cast<int64_t>(1e9 / config_.preview.rate_hz));
   }
   for (TrackResult& r : results_.slots())
     r.features.reserve(static_cast<size_t>(config_.tracker.max_features));
@@ -175,8 +172,10 @@ void Pipeline::stop() {
   results_seq_.notify_all();
   consumed_.fetch_add(1);
   consumed_.notify_all();
-  preview_seq_.fetch_add(1);
-  preview_seq_.notify_all();
+  if (preview_tap_) {
+    preview_tap_->sequence().fetch_add(1);
+    preview_tap_->sequence().notify_all();
+  }
   for (std::thread* t : {&capture_, &track_, &publish_, &command_, &preview_}) {
     if (t->joinable()) t->join();
   }
@@ -225,7 +224,7 @@ void Pipeline::captureLoop() {
       frames_.publish();
       // The slot just published is read by the track stage only, and written again by this
       // stage only after two more publishes: the preview copies it now, off the pair's latency.
-      if (preview_period_ns_ > 0) offerPreview(f, now);
+      if (preview_tap_) (void)preview_tap_->offer(f.pair, now);
       last_frame_ns_.store(now, std::memory_order_relaxed);
       faulted = false;
       ++handed_;
@@ -262,21 +261,6 @@ void Pipeline::captureLoop() {
   capture_epoch_.notify_all();
 }
 
-void Pipeline::offerPreview(const Frame& f, int64_t now) noexcept {
-  if (now - last_preview_ns_ < preview_period_ns_) return;
-  last_preview_ns_ = now;
-  PreviewFrame& p = previews_.back();
-  f.pair.left.copyTo(p.left);  // the same size and type: a memcpy into the preallocated image
-  f.pair.right.copyTo(p.right);
-  p.trigger_seq = f.pair.trigger_seq;
-  p.t_left_ns = f.pair.t_left_ns;
-  p.t_right_ns = f.pair.t_right_ns;
-  previews_.publish();
-  preview_copy_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - now));
-  preview_seq_.fetch_add(1, std::memory_order_release);
-  preview_seq_.notify_one();
-}
-
 void Pipeline::previewLoop() {
   const int scale = config_.preview.scale;
   const std::vector<int> params = {cv::IMWRITE_JPEG_QUALITY, config_.preview.jpeg_quality};
@@ -286,8 +270,8 @@ void Pipeline::previewLoop() {
   std::string frame_ids[2] = {"pulsetrack_left_camera", "pulsetrack_right_camera"};
   uint64_t seen = 0;
   while (running_.load(std::memory_order_relaxed)) {
-    if (!waitFor(preview_seq_, seen, running_)) break;
-    const PreviewFrame* p = previews_.take();
+    if (!waitFor(preview_tap_->sequence(), seen, running_)) break;
+    const PreviewFrame* p = preview_tap_->take();
     if (p == nullptr) continue;
     const int64_t t0 = rt::monotonicNs();
     bool ok = true;
@@ -855,8 +839,9 @@ State Pipeline::health(const Notifier& notifier) {
 
   // With the preview: its stage (scale, encode, send) and the capture stage's copy for it.
   pulsetrack_msgs_msg_dds__StageLatency_ st[5]{};
-  const rt::LatencyHistogram* hist[] = {&capture_lat_, &track_lat_, &publish_lat_, &preview_lat_,
-                                        &preview_copy_lat_};
+  const rt::LatencyHistogram* hist[] = {
+      &capture_lat_, &track_lat_, &publish_lat_, &preview_lat_,
+      preview_tap_ ? &preview_tap_->copyLatency() : &preview_lat_};
   const char* names[] = {"capture", "track", "publish", "preview", "preview_copy"};
   const int nstages = config_.preview.enabled ? 5 : 3;
   for (int i = 0; i < nstages; ++i) {

@@ -10,9 +10,11 @@
 
 #include <atomic>
 #include <cstdlib>
+#include <cstring>
 #include <iostream>
 #include <new>
 
+#include "pulsetrack/daemon/preview.hpp"
 #include "pulsetrack/drivers/pairing.hpp"
 #include "pulsetrack/record/live_recorder.hpp"
 #include "pulsetrack/sim/paper_rig.hpp"
@@ -276,6 +278,38 @@ TEST(TrackerRealtime, PairingAndTheRecordersOfferAllocateNothingAndLockNothing) 
   EXPECT_EQ(g_locks.load(), 0) << "mutex locks in 199 offers";
   EXPECT_GT(paired, 150);
   EXPECT_GT(offered, 0);
+}
+
+// The capture stage's preview hand-off (daemon::PreviewTap): a copy into a preallocated slot at
+// most every period, the rest passed by; nothing allocated or locked, and what the preview stage
+// takes is the pair as it was.
+TEST(TrackerRealtime, ThePreviewsCopyAllocatesNothingAndLocksNothing) {
+  const cv::Size size(1360, 1024);
+  daemon::PreviewTap tap(size, 200'000'000);  // 5 Hz
+  static_assert(noexcept(tap.offer(std::declval<const drivers::StereoFrame&>(), 0)));
+  drivers::StereoFrame pair;
+  pair.left.create(size, CV_8UC1);
+  pair.right.create(size, CV_8UC1);
+  g_allocations = 0;
+  g_locks = 0;
+  g_counting = true;
+  int copied = 0;
+  for (int k = 0; k < 60; ++k) {                        // 2 s at 30 Hz
+    std::memset(pair.left.data, k, pair.left.total());  // (setTo would allocate its scalar)
+    std::memset(pair.right.data, 255 - k, pair.right.total());
+    pair.trigger_seq = static_cast<uint64_t>(k);
+    copied += tap.offer(pair, int64_t{k} * 33'333'333) ? 1 : 0;
+  }
+  g_counting = false;
+  EXPECT_EQ(g_allocations.load(), 0) << "heap allocations in 60 offers";
+  EXPECT_EQ(g_locks.load(), 0) << "mutex locks in 60 offers";
+  EXPECT_EQ(copied, 10);  // every 6th pair: 5 a second
+  const daemon::PreviewFrame* p = tap.take();
+  ASSERT_NE(p, nullptr);
+  EXPECT_EQ(p->trigger_seq, 54U);  // the newest copy
+  EXPECT_EQ(cv::countNonZero(p->left != 54), 0);
+  EXPECT_EQ(cv::countNonZero(p->right != 255 - 54), 0);
+  EXPECT_EQ(tap.take(), nullptr);  // nothing newer
 }
 
 }  // namespace

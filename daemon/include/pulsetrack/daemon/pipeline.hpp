@@ -11,7 +11,7 @@
 //            sensor_msgs/PointCloud2; the health sample, systemd STATUS and the watchdog ping from
 //            health() called by the main thread, which also re-measures the system clock.
 //   preview: at [preview] rate_hz the capture stage copies a pair into a preallocated slot
-//            (previews_: a memcpy, after the pair went to the track stage); this stage, at normal
+//            (PreviewTap: a memcpy, after the pair went to the track stage); this stage, at normal
 //            priority, scales and JPEG-encodes it and sends sensor_msgs/CompressedImage on
 //            rt/.../{left,right}/image/compressed (the console's and rqt_image_view's view).
 //
@@ -29,6 +29,7 @@
 
 #include "pulsetrack/daemon/config.hpp"
 #include "pulsetrack/daemon/notify.hpp"
+#include "pulsetrack/daemon/preview.hpp"
 #include "pulsetrack/dds/dds.hpp"
 #include "pulsetrack/drivers/source.hpp"
 #include "pulsetrack/record/live_recorder.hpp"
@@ -60,13 +61,6 @@ struct TrackingText {
   std::array<char, 512> text{};
   size_t size = 0;
   vision::SessionState state = vision::SessionState::kNoFeatures;
-};
-
-// A pair for the preview stage (full size, preallocated; scaled and encoded off the capture).
-struct PreviewFrame {
-  cv::Mat left, right;
-  uint64_t trigger_seq = 0;
-  int64_t t_left_ns = 0, t_right_ns = 0;
 };
 
 // A robot's Targets set, handed from the command thread to the publish stage.
@@ -113,13 +107,6 @@ class Pipeline {
   // Called from the command thread; hands over to the track stage without a lock.
   // Returns "" when accepted, else the reason.
   std::string command(const pulsetrack_msgs_msg_dds__Command_& c);
-  // A pair for the preview stage (full size, preallocated; scaled and encoded off the capture).
-  struct PreviewFrame {
-    cv::Mat left, right;
-    uint64_t trigger_seq = 0;
-    int64_t t_left_ns = 0, t_right_ns = 0;
-  };
-
   // A robot's Targets set (rt/.../targets): checked here, followed by the publish stage from the
   // next pair (answers on rt/.../targets_tracked). Counted with the commands; "" or the reason.
   std::string targets(const pulsetrack_msgs_msg_dds__Targets_& t);
@@ -144,7 +131,6 @@ class Pipeline {
   void publishLoop();
   void previewLoop();
   void commandLoop();
-  void offerPreview(const Frame& f, int64_t now) noexcept;
 
   DaemonConfig config_;
   std::unique_ptr<drivers::CameraSource> source_;
@@ -171,11 +157,8 @@ class Pipeline {
   uint64_t handed_ = 0;                // capture thread: pairs handed to the track stage
   rt::Heartbeat capture_beat_, track_beat_, publish_beat_;
   rt::LatencyHistogram capture_lat_, track_lat_, publish_lat_;
-  rt::LatestSlot<PreviewFrame> previews_;                // capture -> preview
-  std::atomic<uint64_t> preview_seq_{0};                 // wake-ups of the preview stage
-  int64_t preview_period_ns_ = 0, last_preview_ns_ = 0;  // capture thread
-  rt::LatencyHistogram preview_copy_lat_;                // the capture stage's copy
-  rt::LatencyHistogram preview_lat_;                     // scale, encode and send (both images)
+  std::unique_ptr<PreviewTap> preview_tap_;  // capture -> preview ([preview] enabled)
+  rt::LatencyHistogram preview_lat_;         // scale, encode and send (both images)
   std::atomic<uint64_t> previews_sent_{0};
   std::thread preview_;
   std::atomic<uint64_t> tracked_{0}, processed_{0}, deadline_misses_{0};
