@@ -502,8 +502,8 @@ void Console::Impl::ddsLoop() {
       any = true;
     }
     for (int s = 0; s < 2; ++s) {
-      if (images[static_cast<size_t>(s)] &&
-          images[static_cast<size_t>(s)]->takeOne(&im, std::chrono::milliseconds(0))) {
+      const std::optional<dds::Reader>& r = images[static_cast<size_t>(s)];
+      if (r.has_value() && r->takeOne(&im, std::chrono::milliseconds(0))) {
         onImage(s, im);
         any = true;
       }
@@ -722,6 +722,7 @@ void Console::Impl::routes() {
   });
   svr.Get("/api/whoami", [this](const httplib::Request& req, httplib::Response& res) {
     const auto s = session(req);
+    if (!s) return replyJson(res, 401, {{"error", "not logged in"}});
     replyJson(res, 200, {{"user", s->user}, {"role", toString(s->role)}});
   });
   svr.Get("/api/events", [this](const httplib::Request& req, httplib::Response& res) {
@@ -800,9 +801,10 @@ void Console::Impl::routes() {
   });
   svr.Post("/api/command", [this](const httplib::Request& req, httplib::Response& res) {
     const auto s = session(req);
+    if (!s) return replyJson(res, 401, {{"error", "not logged in"}});
     command(req, res, *s);
   });
-  svr.Get("/", [this](const httplib::Request&, httplib::Response& res) {
+  svr.Get("/", [](const httplib::Request&, httplib::Response& res) {
     res.status = 302;
     res.set_header("Location", "/index.html");
   });
@@ -885,9 +887,11 @@ void Console::stop() {
 }
 
 std::string Console::banner() const {
+  const std::optional<dds::Participant>& p = impl_->participant;
+  const std::string dds = p.has_value() ? p->securityState() : std::string("no DDS");
   return fmt::format("https://{}:{}/ ({} users; DDS domain {}, namespace '{}', {}; {})",
                      impl_->o.host, impl_->bound_port, impl_->users.users().size(), impl_->o.domain,
-                     impl_->o.ros_namespace, impl_->participant->securityState(),
+                     impl_->o.ros_namespace, dds,
                      impl_->commander_error.empty() ? "may command"
                                                     : "may NOT command: " + impl_->commander_error);
 }

@@ -335,6 +335,11 @@ TEST(Daemon, TheRecorderStartsAndStopsOnCommand) {
            "[recorder]\nenabled = false\ndir = \"" + recordings.string() + "\"\n");
   Subscriber sub(domain);
   ASSERT_TRUE(sub.ok());
+  if (!sub.features.has_value()) {
+    ADD_FAILURE() << "no features reader";
+    return;
+  }
+  const dds::Reader& features_reader = *sub.features;
   const auto secs = [&] { return sub.secs(); };
   const std::string ctl = test::cli() + " ctl --domain " + std::to_string(domain) + " ";
   // Waits (bounded) for a health sample whose recorder_state starts with `prefix`.
@@ -367,7 +372,7 @@ TEST(Daemon, TheRecorderStartsAndStopsOnCommand) {
     int features = 0;  // tracking goes on while recording
     while (features < 10 && secs() < 100.0) {
       d.drain(secs());
-      if (sub.features->takeOne(&sub.f, std::chrono::milliseconds(100))) ++features;
+      if (features_reader.takeOne(&sub.f, std::chrono::milliseconds(100))) ++features;
     }
     EXPECT_EQ(features, 10);
     const auto stop = test::run(ctl + "record-stop");

@@ -64,9 +64,12 @@
 
 enum { kFeatures, kDeformation, kHealth, kField, kTracked, kImageLeft, kImageRight, kTopics };
 
-static const char* const kLeaf[kTopics] = {"features",        "deformation",
-                                           "health",          "field",
-                                           "targets_tracked", "left/image/compressed",
+static const char* const kLeaf[kTopics] = {"features",
+                                           "deformation",
+                                           "health",
+                                           "field",
+                                           "targets_tracked",
+                                           "left/image/compressed",
                                            "right/image/compressed"};
 
 static volatile sig_atomic_t g_stop = 0;
@@ -258,8 +261,8 @@ static void jpegSize(const uint8_t* d, uint32_t n, uint32_t* w, uint32_t* h) {
     if (d[i] != 0xFF) return;
     const uint8_t marker = d[i + 1];
     const uint32_t len = ((uint32_t)d[i + 2] << 8) | d[i + 3];
-    const bool sof = marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 &&
-                     marker != 0xCC;
+    const bool sof =
+        marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 && marker != 0xCC;
     if (sof && i + 9 <= n) {
       *h = ((uint32_t)d[i + 5] << 8) | d[i + 6];
       *w = ((uint32_t)d[i + 7] << 8) | d[i + 8];
@@ -591,8 +594,7 @@ int main(int argc, char** argv) {
     else if (strcmp(a, "--images") == 0) {
       ok = ok && parseU32(v, 1000000000u, &want[kImageLeft]);
       want[kImageRight] = want[kImageLeft];
-    }
-    else if (strcmp(a, "--targets") == 0)
+    } else if (strcmp(a, "--targets") == 0)
       targets_text = v;
     else if (strcmp(a, "--set-id") == 0)
       ok = ok && parseU32(v, 0xffffffffu, &set_id);
@@ -658,8 +660,8 @@ int main(int argc, char** argv) {
   g_participant = pp;
 
   const dds_topic_descriptor_t* desc[kTopics] = {
-      &pulsetrack_msgs_msg_dds__Features__desc, &pulsetrack_msgs_msg_dds__Deformation__desc,
-      &pulsetrack_msgs_msg_dds__Health__desc, &sensor_msgs_msg_dds__PointCloud2__desc,
+      &pulsetrack_msgs_msg_dds__Features__desc,       &pulsetrack_msgs_msg_dds__Deformation__desc,
+      &pulsetrack_msgs_msg_dds__Health__desc,         &sensor_msgs_msg_dds__PointCloud2__desc,
       &pulsetrack_msgs_msg_dds__TrackedTargets__desc, &sensor_msgs_msg_dds__CompressedImage__desc,
       &sensor_msgs_msg_dds__CompressedImage__desc};
   // features, deformation: rclcpp::SensorDataQoS() = rmw_qos_profile_sensor_data (best effort,

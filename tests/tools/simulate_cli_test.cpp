@@ -81,8 +81,12 @@ TEST(SimulateCli, LongScenesRenderAndTheirCopyReadsBack) {
   for (const std::string name : {"cortex-1h", "cortex-1h-compressed"}) {
     test::TempDir dir;
     const std::string out = dir / "rec";
-    const auto r = test::run(test::cli() + " simulate -q --scene " + scenes() + "/" + name +
-                             ".toml --frames 3 --out " + out);
+    std::string cmd = test::cli() + " simulate -q --scene " + scenes();
+    cmd += "/";
+    cmd += name;
+    cmd += ".toml --frames 3 --out ";
+    cmd += out;
+    const auto r = test::run(cmd);
     ASSERT_EQ(r.exit_code, 0) << name << ": " << r.output;
     auto rec = record::Reader::open(out);
     ASSERT_TRUE(rec) << rec.error().message;
