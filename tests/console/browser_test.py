@@ -10,8 +10,10 @@ tests/ros2_compat/ros2_subscriber, a subscriber built from the ROS 2 .msg files.
 Checks, in order:
   1. a wrong password is refused (the page says so, the API answers 401), the right one logs in;
   2. both cameras' images load and the features are drawn over them;
-  3. a mouse-drawn ROI makes the daemon re-detect in it: the ok features' left pixels end up
-     inside the drawn rectangle (read from DDS);
+  3. an ROI drawn with a finger (touch) opens the ROI panel with its numbers; a malformed one
+     (width 0) is refused on the page, one too small for the tracker by the console (its 400
+     shown); a mouse-drawn ROI makes the daemon re-detect in it: the ok features' left pixels end
+     up inside the drawn rectangle (read from DDS);
   4. stop and start: the daemon's health says stopped, then tracking again;
   5. the recorder on and off from the page: a recording folder with frames;
   6. a source outage (the simulator's fault injection) turns the health panel degraded, then ok;
@@ -40,8 +42,9 @@ try:
     from selenium import webdriver
     from selenium.webdriver.chrome.options import Options
     from selenium.webdriver.chrome.service import Service
-    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.actions import interaction
     from selenium.webdriver.common.actions.action_builder import ActionBuilder
+    from selenium.webdriver.common.actions.pointer_input import PointerInput
     from selenium.webdriver.common.by import By
 except ImportError:  # pragma: no cover
     print("SKIP: python3-selenium is not installed (scripts/bootstrap installs it)", file=sys.stderr)
@@ -238,15 +241,17 @@ def overlay_has_drawing(d, side):
         "let n = 0; for (let i = 3; i < px.length; i += 4) if (px[i] > 0) ++n; return n;", side)
 
 
-def drag_roi(d, roi, image_width, image_height):
-    """A mouse drag on the left image from the ROI's top-left to its bottom-right corner."""
+def drag_roi(d, roi, image_width, image_height, finger=False):
+    """A drag on the left image from the ROI's top-left to its bottom-right corner, with the
+    mouse or (finger) a touch pointer, as a tablet sends it."""
     r = d.execute_script(
         "const r = document.getElementById('left-overlay').getBoundingClientRect();"
         "return [r.left, r.top, r.width, r.height];")
     sx, sy = r[2] / image_width, r[3] / image_height
     x0, y0 = r[0] + roi[0] * sx, r[1] + roi[1] * sy
     x1, y1 = r[0] + (roi[0] + roi[2]) * sx, r[1] + (roi[1] + roi[3]) * sy
-    a = ActionBuilder(d)
+    a = ActionBuilder(d, mouse=PointerInput(interaction.POINTER_TOUCH, "finger")) if finger \
+        else ActionBuilder(d)
     a.pointer_action.move_to_location(int(round(x0)), int(round(y0)))
     a.pointer_action.pointer_down()
     for k in range(1, 6):
@@ -313,6 +318,34 @@ def main():
         time.sleep(1.0)
         shot("tracking")
         print("2. both images loaded, the features drawn over both")
+
+        step = "3a. an ROI drawn with a finger, and malformed ones"
+        touch = [300, 300, 200, 150]
+        drag_roi(d, touch, 1360, 1024, finger=True)
+        wait_until("the ROI panel after a touch drag",
+                   lambda: d.find_element(By.ID, "roi-panel").is_displayed())
+        got = [int(attr(d, f"#roi-{k}", "value")) for k in "xywh"]
+        if any(abs(a - b) > 3 for a, b in zip(got, touch)):
+            raise Failure(f"the panel says {got}, the finger drew {touch}")
+
+        def set_field(name, value):
+            box = d.find_element(By.ID, f"roi-{name}")
+            box.clear()
+            box.send_keys(value)
+
+        set_field("w", "0")
+        wait_until("the page refusing a width of 0",
+                   lambda: "w must be at least 1" in text(d, "#roi-error"), 10)
+        shot("roi-malformed")
+        set_field("w", "20")
+        set_field("h", "20")
+        d.find_element(By.ID, "apply-roi").click()
+        wait_until("the console's refusal of a 20x20 ROI shown",
+                   lambda: "too small" in text(d, "#roi-error"), 15)
+        refusal = text(d, "#roi-error")
+        d.find_element(By.ID, "cancel-roi").click()
+        print(f"3a. a finger-drawn ROI {got}; width 0 refused on the page; 20x20 refused by the "
+              f"console: {refusal}")
 
         step = "3. an ROI drawn with the mouse"
         roi = [700, 480, 260, 200]  # full-image px; the default ROI is 483,339 400x340
@@ -390,6 +423,11 @@ def main():
             "const px = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
             "let n = 0; for (let i = 3; i < px.length; i += 4) if (px[i] > 0) ++n; return n;") > 1000,
                    30)
+        # The simulated case's breathing is 0.2 Hz, its heartbeat 1 Hz (cortex-60s.toml).
+        for name, hz in (("breathing", 0.20), ("cardiac", 1.00)):
+            m = re.search(name + r"\s+([0-9.]+) Hz", peaks)
+            if not m or abs(float(m.group(1)) - hz) > 0.03:
+                raise Failure(f"the {name} peak is not at {hz} Hz: {peaks}")
         time.sleep(1.0)
         shot("overview")
         print("6b. spectrum: " + peaks.replace("\n", "; ") + "; the field's heat map drawn")

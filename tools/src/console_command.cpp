@@ -7,6 +7,7 @@
 
 #include <atomic>
 #include <csignal>
+#include <filesystem>
 #include <iostream>
 #include <memory>
 #include <thread>
@@ -22,9 +23,21 @@ namespace {
 std::atomic<bool> g_stop{false};
 void onSignal(int /*sig*/) { g_stop.store(true); }
 
+// The page's folder as installed: beside the program (BIN/../share/pulsetrack/console, wherever
+// the package put it), else where this build would install it.
+std::string installedWww() {
+  std::error_code ec;
+  const std::filesystem::path exe = std::filesystem::read_symlink("/proc/self/exe", ec);
+  if (!ec) {
+    const auto beside = exe.parent_path().parent_path() / "share/pulsetrack/console";
+    if (std::filesystem::is_regular_file(beside / "index.html", ec)) return beside.string();
+  }
+  return PULSETRACK_CONSOLE_WWW;
+}
+
 struct ConsoleArgs {
   console::ConsoleOptions o;
-  std::string www = PULSETRACK_CONSOLE_WWW;
+  std::string www = installedWww();
   std::string enclave;
 };
 
@@ -111,7 +124,8 @@ CommandRunner addConsoleCommand(CLI::App& app) {
       ->required();
   cmd->add_option("--rig", a->o.rig, "The rig file the daemon uses (the right ROI's derivation)")
       ->required();
-  cmd->add_option("--www", a->www, "The page's folder")->capture_default_str();
+  cmd->add_option("--www", a->www, "The page's folder (default: the installed one)")
+      ->capture_default_str();
   cmd->add_option("--domain", a->o.domain, "DDS domain id")
       ->check(CLI::Range(0, 232))
       ->capture_default_str();
