@@ -67,6 +67,11 @@ class Console:
         if status != 200:
             raise Failure(f"console {name}: login answered {status} {body!r}")
         self.cookie = headers["Set-Cookie"].split(";")[0]
+        # One event stream for the console's life, opened before any command is sent, so that
+        # no event after it is missed (a stream opened later gets only the latest states).
+        req = urllib.request.Request(self.url + "/api/events")
+        req.add_header("Cookie", self.cookie)
+        self.sse = urllib.request.urlopen(req, context=self.ctx, timeout=10)
 
     def request(self, path, data=None, json_body=None):
         req = urllib.request.Request(self.url + path, data=data)
@@ -83,22 +88,20 @@ class Console:
 
     def events(self, until, timeout=60):
         """Reads the event stream until until(name, data) is true; returns (name, data)."""
-        req = urllib.request.Request(self.url + "/api/events")
-        req.add_header("Cookie", self.cookie)
         end = time.monotonic() + timeout
-        with urllib.request.urlopen(req, context=self.ctx, timeout=10) as r:
-            name = None
-            while time.monotonic() < end:
-                line = r.readline().decode().rstrip("\n")
-                if line.startswith("event: "):
-                    name = line[7:]
-                elif line.startswith("data: ") and name:
-                    data = json.loads(line[6:])
-                    if until(name, data):
-                        return name, data
+        name = None
+        while time.monotonic() < end:
+            line = self.sse.readline().decode().rstrip("\n")
+            if line.startswith("event: "):
+                name = line[7:]
+            elif line.startswith("data: ") and name:
+                data = json.loads(line[6:])
+                if until(name, data):
+                    return name, data
         raise Failure("the event awaited did not come within %d s" % timeout)
 
     def close(self):
+        self.sse.close()
         self.proc.send_signal(signal.SIGTERM)
         try:
             self.proc.wait(20)

@@ -298,7 +298,9 @@ TEST(TrackerRealtime, ThePreviewsCopyAllocatesNothingAndLocksNothing) {
     std::memset(pair.left.data, k, pair.left.total());  // (setTo would allocate its scalar)
     std::memset(pair.right.data, 255 - k, pair.right.total());
     pair.trigger_seq = static_cast<uint64_t>(k);
-    copied += tap.offer(pair, int64_t{k} * 33'333'333) ? 1 : 0;
+    pair.t_left_ns = pair.t_right_ns = int64_t{k} * 33'333'333;
+    // Handed over late, and later for some: the schedule follows the exposures.
+    copied += tap.offer(pair, pair.t_left_ns + (k % 4 == 0 ? 90'000'000 : 5'000'000)) ? 1 : 0;
   }
   g_counting = false;
   EXPECT_EQ(g_allocations.load(), 0) << "heap allocations in 60 offers";

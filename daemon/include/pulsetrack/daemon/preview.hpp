@@ -25,8 +25,9 @@ class PreviewTap {
   // Slots of `size` (8-bit, one channel) allocated here; period_ns <= 0: never taken.
   PreviewTap(cv::Size size, int64_t period_ns);
 
-  // The capture stage: copies the pair when the next copy is due (one per period on average,
-  // never two within 0.95 periods). True when it did.
+  // The capture stage: copies the pair when the next copy is due by its exposure stamp (one per
+  // period on average, never two within 0.9 periods); `now_ns` (monotonic, when the source
+  // handed it over) times the copy. True when it did.
   bool offer(const drivers::StereoFrame& pair, int64_t now_ns) noexcept;
   // The preview stage: the newest copy, or nullptr; valid until the next take().
   const PreviewFrame* take() noexcept { return slots_.take(); }
