@@ -50,14 +50,7 @@ except ImportError:  # pragma: no cover
     print("SKIP: python3-selenium is not installed (scripts/bootstrap installs it)", file=sys.stderr)
     sys.exit(77)
 
-LOOPBACK = ('<CycloneDDS><Domain id="any"><General><Interfaces><NetworkInterface name="lo"/>'
-            '</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>'
-            '<ParticipantIndex>auto</ParticipantIndex><Peers><Peer Address="127.0.0.1"/></Peers>'
-            '</Discovery></Domain></CycloneDDS>')
-
-
-class Failure(Exception):
-    pass
+from harness import LOOPBACK, Failure, run
 
 
 def wait_until(what, fn, timeout=60.0, every=0.25):
@@ -177,13 +170,6 @@ period_ms = 200
             if line.startswith("features "):
                 rows.append(dict(w.split("=", 1) for w in line.split()[1:] if "=" in w))
         return rows
-
-
-def run(cmd, stdin=None):
-    r = subprocess.run(cmd, input=stdin, capture_output=True, text=True)
-    if r.returncode != 0:
-        raise Failure(f"{' '.join(cmd)}: exit {r.returncode}: {r.stdout}{r.stderr}")
-    return r.stdout
 
 
 def spki_pin(cert):

@@ -22,21 +22,7 @@ import time
 import urllib.error
 import urllib.request
 
-LOOPBACK = ('<CycloneDDS><Domain id="any"><General><Interfaces><NetworkInterface name="lo"/>'
-            '</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>'
-            '<ParticipantIndex>auto</ParticipantIndex><Peers><Peer Address="127.0.0.1"/></Peers>'
-            '</Discovery></Domain></CycloneDDS>')
-
-
-class Failure(Exception):
-    pass
-
-
-def run(cmd, stdin=None):
-    r = subprocess.run(cmd, input=stdin, capture_output=True, text=True)
-    if r.returncode != 0:
-        raise Failure(f"{' '.join(cmd)}: exit {r.returncode}: {r.stdout}{r.stderr}")
-    return r.stdout
+from harness import LOOPBACK, Failure, run
 
 
 class Console:
