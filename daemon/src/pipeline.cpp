@@ -129,6 +129,12 @@ vision::Result<std::vector<std::string>> Pipeline::start() {
       if (!iw) return std::unexpected(iw.error());
       image_writers_[k] = std::move(*iw);
     }
+    // The JPEG codec's one-time set-up (OpenCV's imgcodecs registers its codecs, GDAL's among
+    // them) here, before the stages run, not at the first preview next to them.
+    std::vector<uchar> jpeg;
+    if (!cv::imencode(".jpg", cv::Mat(8, 8, CV_8UC1, cv::Scalar(0)), jpeg))
+      return vision::fail(
+          "the preview: OpenCV cannot encode JPEG here (set [preview] enabled = false)");
   }
   if (auto ok = source_->start(); !ok) return std::unexpected(ok.error());
   std::vector<std::string> warnings;

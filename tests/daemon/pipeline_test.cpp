@@ -103,6 +103,9 @@ DaemonConfig testConfig(const std::string& rig_id) {
   // the field's set-up at the first pair (its bases, ~10 ms natively) took the publish stage
   // past it ("starting fault ok ..."). The field through the daemon: output_e2e_test.
   config.field.enabled = false;
+  // The preview off for the same reason: its normal-priority thread shares the cores with the
+  // stages here (no real-time policy). The preview through the daemon: ros2_output_test.
+  config.preview.enabled = false;
   return config;
 }
 
@@ -119,7 +122,7 @@ TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
                                     dds::Profile::kTransientLocal);
   ASSERT_TRUE(health);
   Pipeline pipeline(
-      config, std::make_unique<StallingSource>(frames, rig, 20, std::chrono::milliseconds(2500)),
+      config, std::make_unique<StallingSource>(frames, rig, 40, std::chrono::milliseconds(2500)),
       *p);
   auto started = pipeline.start();
   ASSERT_TRUE(started) << started.error().message;
@@ -131,6 +134,10 @@ TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
   for (int k = 0; k < 70; ++k) {  // 7 s
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
     const State st = pipeline.health(notifier);
+    // Judged from the first ok on: the stall comes after it. A start under qemu next to another
+    // emulated test may take a stage past its 1 s heartbeat at the first pair ("starting fault
+    // ok ..."); that is the start's verdict, not the stall's (the start: StampsAreTheExposure...).
+    if (states.empty() && st != State::kOk) continue;
     if (states.empty() || states.back() != st) states.push_back(st);
     while (health->takeOne(&h, std::chrono::milliseconds(0))) {
       if (h.state == static_cast<uint8_t>(State::kDegraded)) degraded_text = h.last_error;
@@ -141,7 +148,7 @@ TEST(Pipeline, ASourceThatStallsAndComesBackIsDegradedThenOk) {
   std::string seq;
   for (State st : states) seq += std::string(toString(st)) + " ";
   std::cout << "states: " << seq << "\ndegraded: " << degraded_text << "\n";
-  // starting -> ok -> degraded (the stall) -> ok (frames again, tracked).
+  // ok -> degraded (the stall) -> ok (frames again, tracked), never a fault.
   ASSERT_GE(states.size(), 3U) << seq;
   EXPECT_EQ(states.back(), State::kOk) << seq;
   EXPECT_NE(std::find(states.begin(), states.end(), State::kDegraded), states.end()) << seq;

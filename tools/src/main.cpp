@@ -29,6 +29,9 @@ int main(int argc, char** argv) try {
   runners["console"] = pulsetrack::tools::addConsoleCommand(app);
   runners["console-user"] = pulsetrack::tools::addConsoleUserCommand(app);
 #endif
+#ifdef PULSETRACK_HAS_IGTL
+  runners["igtl"] = pulsetrack::tools::addIgtlCommand(app);
+#endif
   CLI11_PARSE(app, argc, argv);
   for (const CLI::App* sub : app.get_subcommands()) {
     return runners.at(sub->get_name())();

@@ -24,6 +24,9 @@ CommandRunner addAnalyzeCommand(CLI::App& app);
 CommandRunner addConsoleCommand(CLI::App& app);
 CommandRunner addConsoleUserCommand(CLI::App& app);
 #endif
+#ifdef PULSETRACK_HAS_IGTL
+CommandRunner addIgtlCommand(CLI::App& app);
+#endif
 
 // Renders a scene file into a recording folder as `pulsetrack simulate` does; 0 on success.
 int simulateScene(const std::string& scene, const std::string& out, bool quiet);
