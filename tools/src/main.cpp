@@ -25,6 +25,7 @@ int main(int argc, char** argv) try {
   runners["ctl"] = pulsetrack::tools::addCtlCommand(app);
   runners["validate"] = pulsetrack::tools::addValidateCommand(app);
   runners["analyze"] = pulsetrack::tools::addAnalyzeCommand(app);
+  runners["export"] = pulsetrack::tools::addExportCommand(app);
 #ifdef PULSETRACK_HAS_CONSOLE
   runners["console"] = pulsetrack::tools::addConsoleCommand(app);
   runners["console-user"] = pulsetrack::tools::addConsoleUserCommand(app);

@@ -14,6 +14,7 @@
 
 #include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/record/track_csv.hpp"
+#include "pulsetrack/record/video.hpp"
 #include "pulsetrack/tools/commands.hpp"
 #include "pulsetrack/tools/field_output.hpp"
 #include "pulsetrack/tools/image_pairs.hpp"
@@ -145,6 +146,7 @@ struct TrackArgs : CommonArgs {
   std::string input;
   std::string left;
   std::string right;
+  std::string video, left_video, right_video, layout = "sbs";
   std::string deformation;
   double fps = 10.0;
   double retry_interval = vision::SessionConfig{}.retry_interval_s;
@@ -167,11 +169,28 @@ int runTrack(const TrackArgs& a) {
   auto roi = rois(a);
   if (!roi) return commandError("track", roi.error().message);
   std::optional<record::Reader> reader;
+  std::optional<record::StereoVideoReader> video;
   std::vector<std::pair<std::string, std::string>> pairs;
   vision::StereoRig rig;
-  if (!a.input.empty()) {
-    if (!a.left.empty() || !a.right.empty())
-      return commandError("track", "give --input or --left/--right, not both");
+  const int inputs = static_cast<int>(!a.input.empty()) +
+                     static_cast<int>(!a.left.empty() || !a.right.empty()) +
+                     static_cast<int>(!a.video.empty()) +
+                     static_cast<int>(!a.left_video.empty() || !a.right_video.empty());
+  if (inputs > 1)
+    return commandError("track",
+                        "give one input: --input, --left/--right, --video, or "
+                        "--left-video/--right-video");
+  if (!a.video.empty() || !a.left_video.empty() || !a.right_video.empty()) {
+    if (a.rig.empty()) return commandError("track", "--rig is required with video files");
+    auto layout = record::parseVideoLayout(a.video.empty() ? "two" : a.layout);
+    if (!layout) return commandError("track", layout.error().message);
+    if (a.video.empty() && (a.left_video.empty() || a.right_video.empty()))
+      return commandError("track", "give both --left-video and --right-video");
+    auto v = a.video.empty() ? record::StereoVideoReader::open(a.left_video, a.right_video, *layout)
+                             : record::StereoVideoReader::open(a.video, "", *layout);
+    if (!v) return commandError("track", v.error().message);
+    video.emplace(std::move(*v));
+  } else if (!a.input.empty()) {
     auto r = record::Reader::open(a.input);
     if (!r) return commandError("track", r.error().message);
     if (const auto& cut = r->truncation(); cut.has_value())
@@ -184,7 +203,9 @@ int runTrack(const TrackArgs& a) {
     rig = reader->rig();
   } else {
     if (a.left.empty() || a.right.empty())
-      return commandError("track", "give --input RECORDING, or --left and --right globs");
+      return commandError("track",
+                          "give --input RECORDING, --left and --right globs, --video FILE or "
+                          "--left-video and --right-video");
     auto p = pairImages(a.left, a.right);
     if (!p) return commandError("track", p.error().message);
     pairs = std::move(*p);
@@ -198,7 +219,14 @@ int runTrack(const TrackArgs& a) {
   }
   if (auto ok = vision::TrackingSession::checkRoi(rig, *roi, a.depth); !ok)
     return commandError("track", ok.error().message);
-  const size_t n = reader ? reader->size() : pairs.size();
+  if (video && video->viewSize() != rig.left.imageSize()) {
+    return commandError(
+        "track", fmt::format("{}: each view is {}x{}, the rig's cameras {}x{} ({})", video->name(),
+                             video->viewSize().width, video->viewSize().height,
+                             rig.left.imageSize().width, rig.left.imageSize().height, a.rig));
+  }
+  // A video's length is known at its end (a container's frame count is an estimate).
+  size_t n = reader ? reader->size() : video ? 0 : pairs.size();
   // The daemon's policy, the same code: detection, retries, re-detection, stereo refresh and
   // the deformation (offline = live).
   vision::SessionConfig sc;
@@ -249,14 +277,28 @@ int runTrack(const TrackArgs& a) {
   cv::Mat left, right;
   int initial = -1;
   uint64_t reason_seen = 0;
-  for (size_t i = 0; i < n; ++i) {
+  for (size_t i = 0; video || i < n; ++i) {
     long frame = static_cast<long>(i);
     double t = static_cast<double>(i) / a.fps;
     auto t_ns = static_cast<int64_t>(std::llround(t * 1e9));
-    if (reader) {
+    uint64_t seq = i;
+    if (video) {
+      record::VideoFrame vf;
+      auto more = video->next(left, right, vf);
+      if (!more) return commandError("track", more.error().message);
+      if (!*more) {
+        n = i;
+        break;
+      }
+      frame = static_cast<long>(vf.frame);
+      seq = vf.frame;  // a dropped frame is a gap, as a missing trigger is
+      t_ns = vf.t_ns;
+      t = static_cast<double>(t_ns) * 1e-9;
+    } else if (reader) {
       if (auto ok = reader->read(i, left, right); !ok)
         return commandError("track", ok.error().message);
       frame = static_cast<long>(reader->meta(i).frame);
+      seq = reader->meta(i).trigger_seq;
       t_ns = reader->meta(i).t_left_ns;
       t = static_cast<double>(t_ns) * 1e-9;
     } else {
@@ -268,8 +310,7 @@ int runTrack(const TrackArgs& a) {
       right = *r;
     }
     const auto t0 = std::chrono::steady_clock::now();
-    const vision::PairResult& pr =
-        session.process(left, right, reader ? reader->meta(i).trigger_seq : i, t_ns);
+    const vision::PairResult& pr = session.process(left, right, seq, t_ns);
     if (!pr.detected) {
       step_us.push_back(
           std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count());
@@ -311,9 +352,15 @@ int runTrack(const TrackArgs& a) {
     // As the daemon does once a pair's result is out: match some features' stereo again.
     session.afterPublish(left, right);
     if (!a.quiet && (i + 1) % 50 == 0) {
-      fmt::print(stderr, "frame {}/{}: {} of {} features ok\n", i + 1, n,
-                 session.tracker().okCount(), session.tracker().features().size());
+      fmt::print(stderr, "frame {}/{}: {} of {} features ok\n", i + 1,
+                 video ? std::string("?") : std::to_string(n), session.tracker().okCount(),
+                 session.tracker().features().size());
     }
+  }
+  if (video) {
+    for (const std::string& w : video->warnings()) fmt::print(stderr, "warning: {}\n", w);
+    fmt::print("video             {}: {} pairs at {:.3f} frames/s, {} missing, {} unpaired\n",
+               video->name(), n, video->rate(), video->missing(), video->unpaired());
   }
   if (initial < 0) {
     return commandError("track",
@@ -366,15 +413,27 @@ CommandRunner addMatchCommand(CLI::App& app) {
 
 CommandRunner addTrackCommand(CLI::App& app) {
   auto args = std::make_shared<TrackArgs>();
-  CLI::App* cmd = app.add_subcommand("track",
-                                     "Track features through a recording or an image sequence; "
-                                     "writes frame,t,id,xl,yl,xr,yr,x,y,z,ncc,nmi,status.");
+  CLI::App* cmd =
+      app.add_subcommand("track",
+                         "Track features through a recording, an image sequence or stereo video; "
+                         "writes frame,t,id,xl,yl,xr,yr,x,y,z,ncc,nmi,status.");
   addCommon(cmd, *args, false);
   cmd->add_option("--input", args->input,
                   "Recording folder (its rig.yaml is used unless --rig is given)");
   cmd->add_option("--left", args->left,
                   "Left images, a quoted glob ('DIR/left_*.png', sorted by name)");
   cmd->add_option("--right", args->right, "Right images, a quoted glob");
+  cmd->add_option("--video", args->video,
+                  "One video file with both views (--layout), any codec FFmpeg reads; time "
+                  "stamps from the container, a dropped frame a gap (docs/video.md)");
+  cmd->add_option("--layout", args->layout,
+                  "--video's layout: sbs (side by side, left view left) or tb (top-bottom, left "
+                  "view on top)")
+      ->check(CLI::IsMember({"sbs", "tb"}))
+      ->capture_default_str();
+  cmd->add_option("--left-video", args->left_video, "The left view's video file");
+  cmd->add_option("--right-video", args->right_video,
+                  "The right view's video file (pairs by time stamp with the left's)");
   cmd->add_option("--fps", args->fps, "Frame rate of an image sequence")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();

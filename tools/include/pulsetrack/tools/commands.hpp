@@ -20,6 +20,7 @@ CommandRunner addListenCommand(CLI::App& app);
 CommandRunner addCtlCommand(CLI::App& app);
 CommandRunner addValidateCommand(CLI::App& app);
 CommandRunner addAnalyzeCommand(CLI::App& app);
+CommandRunner addExportCommand(CLI::App& app);
 #ifdef PULSETRACK_HAS_CONSOLE
 CommandRunner addConsoleCommand(CLI::App& app);
 CommandRunner addConsoleUserCommand(CLI::App& app);
