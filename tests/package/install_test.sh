@@ -70,6 +70,22 @@ grep -q "pulsetrack console" <<<"$page" || fail "the login page is not the conso
 grep -q "events 401" <<<"$page" || fail "the API answered without a login: $page"
 pass "pulsetrack console serves the installed page over TLS (login page; the API 401 without a login)"
 
+out=$(systemd-analyze verify /lib/systemd/system/pulsetrack-igtl.service 2>&1) ||
+  fail "systemd-analyze verify pulsetrack-igtl.service: $out"
+[[ -z $out ]] || fail "systemd-analyze verify pulsetrack-igtl.service warned: $out"
+# The bridge as its unit would start it (its options from the installed igtl.env), on a port of
+# its own; Debian's libopenigtlink came with the package's dependencies.
+# shellcheck disable=SC1091
+. /etc/pulsetrack/igtl.env
+# shellcheck disable=SC2086
+pulsetrack igtl ${PULSETRACK_IGTL_ARGS/--port 18944/--port 18945} >/tmp/igtl.log 2>&1 &
+igtl=$!
+for _ in $(seq 100); do grep -q "igtl: serving" /tmp/igtl.log && break; sleep 0.2; done
+grep -q "igtl: serving OpenIGTLink on 127.0.0.1:18945" /tmp/igtl.log ||
+  fail "the OpenIGTLink bridge did not start: $(cat /tmp/igtl.log)"
+kill $igtl
+pass "pulsetrack-igtl.service verifies; pulsetrack igtl serves with the installed igtl.env ($(dpkg-query -W -f='${Package} ${Version}' 'libopenigtlink*' | head -1))"
+
 entry=$(getent passwd pulsetrack) || fail "no user pulsetrack"
 [[ $(cut -d: -f6 <<<"$entry") == /var/lib/pulsetrack ]] || fail "home: $entry"
 [[ $(cut -d: -f7 <<<"$entry") == */nologin ]] || fail "shell: $entry"
@@ -99,6 +115,7 @@ pass "udev reads $rules without a complaint (a broken rule beside it: $broken)"
 
 conf=$(dpkg-query -W -f='${Conffiles}' pulsetrack)
 grep -q "/etc/pulsetrack/pulsetrackd.toml" <<<"$conf" || fail "pulsetrackd.toml is no conffile"
+grep -q "/etc/pulsetrack/igtl.env" <<<"$conf" || fail "igtl.env is no conffile"
 pass "conffiles: $(awk '{print $1}' <<<"$conf" | tr '\n' ' ')"
 
 pulsetrack --version | grep -q "pulsetrack $(dpkg-query -W -f='${Version}' pulsetrack | cut -d- -f1)" ||
