@@ -38,7 +38,7 @@ struct BridgeOptions {
   std::string host = "127.0.0.1";              // the address to listen on
   int port = 18944;                            // OpenIGTLink's (and Slicer's) default; 0: any
   double image_rate_hz = 1.0;                  // IMAGE LeftCamera at most this often (0: never)
-  double field_rate_hz = 2.0;                  // POLYDATA DenseField at most this often (0: never)
+  double field_rate_hz = 0.5;  // POLYDATA DenseField at most this often (0: never; docs/slicer.md)
   std::optional<Eigen::Isometry3d> camera_to_tracker;  // O_T_C, mm: the tracker's frame
   int max_clients = 16;
   int queue_messages = 256;       // per client: beyond it the oldest message is dropped (counted)
