@@ -498,13 +498,14 @@ void Bridge::Impl::acceptLoop() {
       }
     }
     {
+      // Started and listed under the lock: reap() never sees a client whose thread is not set.
       const std::lock_guard lock(clients_m);
+      c->thread = std::thread([this, c] { serve(c); });
       clients.push_back(c);
       now_clients = clients.size();
     }
     fmt::print("igtl: client {} connected ({} now)\n", peer, now_clients);
     std::fflush(stdout);
-    c->thread = std::thread([this, c] { serve(c); });
   }
 }
 
@@ -601,7 +602,7 @@ void Bridge::Impl::serve(const std::shared_ptr<Client>& cp) {
   size_t left = 0;
   {
     const std::lock_guard lock(clients_m);
-    left = clients.size() - 1;
+    left = clients.empty() ? 0 : clients.size() - 1;
   }
   fmt::print("igtl: client {} gone ({}): {} messages sent, {} dropped ({} left)\n", c.peer, why,
              c.sent.load(), c.dropped.load(), left);
