@@ -75,10 +75,11 @@ out=$(systemd-analyze verify /lib/systemd/system/pulsetrack-igtl.service 2>&1) |
 [[ -z $out ]] || fail "systemd-analyze verify pulsetrack-igtl.service warned: $out"
 # The bridge as its unit would start it (its options from the installed igtl.env), on a port of
 # its own; Debian's libopenigtlink came with the package's dependencies.
-# shellcheck disable=SC1091
-. /etc/pulsetrack/igtl.env
+# (systemd's EnvironmentFile syntax, not a shell's: the value is read, not sourced.)
+igtl_args=$(sed -n 's/^PULSETRACK_IGTL_ARGS=//p' /etc/pulsetrack/igtl.env)
+[[ -n $igtl_args ]] || fail "/etc/pulsetrack/igtl.env sets no PULSETRACK_IGTL_ARGS"
 # shellcheck disable=SC2086
-pulsetrack igtl ${PULSETRACK_IGTL_ARGS/--port 18944/--port 18945} >/tmp/igtl.log 2>&1 &
+pulsetrack igtl ${igtl_args/--port 18944/--port 18945} >/tmp/igtl.log 2>&1 &
 igtl=$!
 for _ in $(seq 100); do grep -q "igtl: serving" /tmp/igtl.log && break; sleep 0.2; done
 grep -q "igtl: serving OpenIGTLink on 127.0.0.1:18945" /tmp/igtl.log ||
