@@ -5,7 +5,6 @@
 #include <fmt/format.h>
 
 #include <algorithm>
-#include <charconv>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -177,17 +176,9 @@ int runExport(const ExportArgs& a) {
       return commandError("export", fmt::format("{}: no such file", def));
     }
     if (!a.roi.empty()) {
-      int v[4] = {0, 0, 0, 0};
-      const char* p = a.roi.data();
-      const char* end = a.roi.data() + a.roi.size();
-      for (int i = 0; i < 4; ++i) {
-        const auto [ptr, ec] = std::from_chars(p, end, v[i]);
-        if (ec != std::errc() || (i < 3 && (ptr == end || *ptr != ',')) || (i == 3 && ptr != end))
-          return commandError("export",
-                              fmt::format("--roi-left '{}': expected x,y,w,h (pixels)", a.roi));
-        p = ptr + 1;
-      }
-      roi = cv::Rect(v[0], v[1], v[2], v[3]);
+      auto rect = parseRect(a.roi, "--roi-left");
+      if (!rect) return commandError("export", rect.error().message);
+      roi = *rect;
     }
     const cv::Size size(view.width + view.width % 2, view.height + kStrip);
     auto w = overlayWriter(a.overlay, rate, size);

@@ -4,7 +4,10 @@
 
 #include <CLI/CLI.hpp>
 #include <functional>
+#include <opencv2/core.hpp>
 #include <string>
+
+#include "pulsetrack/vision/error.hpp"
 
 namespace pulsetrack::tools {
 
@@ -31,6 +34,9 @@ CommandRunner addIgtlCommand(CLI::App& app);
 
 // Renders a scene file into a recording folder as `pulsetrack simulate` does; 0 on success.
 int simulateScene(const std::string& scene, const std::string& out, bool quiet);
+
+// A rectangle given as "x,y,w,h" (pixels) to `option`; the error names the option and the text.
+vision::Result<cv::Rect> parseRect(const std::string& text, const char* option);
 
 // "pulsetrack COMMAND: error: MESSAGE" on stderr; returns 1, the failure exit code.
 int commandError(const char* command, const std::string& message);
