@@ -34,16 +34,45 @@ struct Texture {
     for (const cv::Vec4d& w : waves) v += w[3] * std::sin(w[0] * x + w[1] * y + w[2]);
     return v;
   }
-  // An 8-bit image whose pixel p shows the texture at `from(p)`, with gain and bias.
+  // An 8-bit image whose pixel p shows the texture at `from(p)`, with gain and bias. `from` is
+  // affine (every use here is), so each wave's phase is c + a x + b y and its sine separates:
+  // sin(a x) cos(c + b y) + cos(a x) sin(c + b y), 16 k sines an image instead of 1.6 M. (The
+  // direct sum made this file's tests minutes long under emulation: under qemu 7.2 -cpu max with
+  // vectors over 128 bits, plain scalar code runs about 25 times slower once the SVE2 kernel has
+  // run a few times, 1.3 s an image instead of 50 ms; the refiners under test take milliseconds.)
   template <class F>
   [[nodiscard]] cv::Mat image(F from, double gain = 1.0, double bias = 0.0) const {
-    cv::Mat img(200, 200, CV_8UC1);
-    for (int y = 0; y < img.rows; ++y) {
-      for (int x = 0; x < img.cols; ++x) {
-        const cv::Vec2d q = from(cv::Vec2d(x, y));
-        img.at<uint8_t>(y, x) = cv::saturate_cast<uint8_t>(gain * at(q[0], q[1]) + bias);
+    constexpr int kSide = 200;
+    const cv::Vec2d o = from(cv::Vec2d(0, 0));
+    const cv::Vec2d ex = from(cv::Vec2d(1, 0)) - o, ey = from(cv::Vec2d(0, 1)) - o;
+    const cv::Vec2d far = from(cv::Vec2d(kSide - 1, kSide - 1));
+    EXPECT_LT(cv::norm(far - (o + (kSide - 1) * (ex + ey))), 1e-9) << "an affine map";
+    cv::Mat acc(kSide, kSide, CV_64FC1, cv::Scalar(125.0));
+    std::vector<double> sa(kSide), ca(kSide), sb(kSide), cb(kSide);
+    for (const cv::Vec4d& w : waves) {
+      const double c = w[0] * o[0] + w[1] * o[1] + w[2];
+      const double a = w[0] * ex[0] + w[1] * ex[1], b = w[0] * ey[0] + w[1] * ey[1];
+      for (int i = 0; i < kSide; ++i) {
+        sa[static_cast<size_t>(i)] = w[3] * std::sin(a * i);
+        ca[static_cast<size_t>(i)] = w[3] * std::cos(a * i);
+        sb[static_cast<size_t>(i)] = std::sin(c + b * i);
+        cb[static_cast<size_t>(i)] = std::cos(c + b * i);
+      }
+      for (int y = 0; y < kSide; ++y) {
+        auto* row = acc.ptr<double>(y);
+        const double cy = cb[static_cast<size_t>(y)], sy = sb[static_cast<size_t>(y)];
+        for (int x = 0; x < kSide; ++x)
+          row[x] += sa[static_cast<size_t>(x)] * cy + ca[static_cast<size_t>(x)] * sy;
       }
     }
+    for (const cv::Point p : {cv::Point(0, 0), cv::Point(37, 151), cv::Point(199, 88)}) {
+      const cv::Vec2d q = from(cv::Vec2d(p.x, p.y));
+      EXPECT_NEAR(acc.at<double>(p), at(q[0], q[1]), 1e-9) << "the direct sum at " << p;
+    }
+    cv::Mat img(kSide, kSide, CV_8UC1);
+    for (int y = 0; y < kSide; ++y)
+      for (int x = 0; x < kSide; ++x)
+        img.at<uint8_t>(y, x) = cv::saturate_cast<uint8_t>(gain * acc.at<double>(y, x) + bias);
     return img;
   }
 };
