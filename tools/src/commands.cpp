@@ -2,9 +2,32 @@
 
 #include <fmt/format.h>
 
+#include <atomic>
 #include <charconv>
+#include <chrono>
+#include <csignal>
+#include <thread>
 
 namespace pulsetrack::tools {
+
+namespace {
+std::atomic<bool> g_stop{false};
+void onSignal(int /*sig*/) { g_stop.store(true); }
+}  // namespace
+
+void serveUntilSignal(const std::function<void()>& run, const std::function<void()>& stop) {
+  g_stop.store(false);
+  std::signal(SIGINT, onSignal);
+  std::signal(SIGTERM, onSignal);
+  std::signal(SIGPIPE, SIG_IGN);
+  std::thread watch([&] {
+    while (!g_stop.load()) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    stop();
+  });
+  run();
+  g_stop.store(true);
+  watch.join();
+}
 
 int commandError(const char* command, const std::string& message) {
   fmt::print(stderr, "pulsetrack {}: error: {}\n", command, message);

@@ -5,12 +5,9 @@
 #include <termios.h>
 #include <unistd.h>
 
-#include <atomic>
-#include <csignal>
 #include <filesystem>
 #include <iostream>
 #include <memory>
-#include <thread>
 
 #include "pulsetrack/console/console.hpp"
 #include "pulsetrack/console/credentials.hpp"
@@ -19,9 +16,6 @@
 namespace pulsetrack::tools {
 
 namespace {
-
-std::atomic<bool> g_stop{false};
-void onSignal(int /*sig*/) { g_stop.store(true); }
 
 // The page's folder as installed: beside the program (BIN/../share/pulsetrack/console, wherever
 // the package put it), else where this build would install it.
@@ -49,15 +43,7 @@ int runConsole(const ConsoleArgs& a) {
   if (!c) return commandError("console", c.error().message);
   fmt::print("console: serving {}\n", (*c)->banner());
   std::fflush(stdout);
-  std::signal(SIGINT, onSignal);
-  std::signal(SIGTERM, onSignal);
-  std::thread watch([&] {
-    while (!g_stop.load()) std::this_thread::sleep_for(std::chrono::milliseconds(100));
-    (*c)->stop();
-  });
-  (*c)->run();
-  g_stop.store(true);
-  watch.join();
+  serveUntilSignal([&] { (*c)->run(); }, [&] { (*c)->stop(); });
   fmt::print("console: stopped\n");
   return 0;
 }

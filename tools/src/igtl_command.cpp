@@ -2,10 +2,7 @@
 
 #include <fmt/format.h>
 
-#include <atomic>
-#include <csignal>
 #include <memory>
-#include <thread>
 
 #include "pulsetrack/analysis/report.hpp"
 #include "pulsetrack/igtl/bridge.hpp"
@@ -14,9 +11,6 @@
 namespace pulsetrack::tools {
 
 namespace {
-
-std::atomic<bool> g_stop{false};
-void onSignal(int /*sig*/) { g_stop.store(true); }
 
 struct IgtlArgs {
   igtl::BridgeOptions o;
@@ -38,16 +32,7 @@ int runIgtl(const IgtlArgs& a) {
              a.registration.empty() ? "" : ", registration " + a.registration, o.domain,
              o.ros_namespace.empty() ? "" : ", namespace " + o.ros_namespace);
   std::fflush(stdout);
-  std::signal(SIGINT, onSignal);
-  std::signal(SIGTERM, onSignal);
-  std::signal(SIGPIPE, SIG_IGN);
-  std::thread watch([&] {
-    while (!g_stop.load()) std::this_thread::sleep_for(std::chrono::milliseconds(100));
-    (*b)->stop();
-  });
-  (*b)->run();
-  g_stop.store(true);
-  watch.join();
+  serveUntilSignal([&] { (*b)->run(); }, [&] { (*b)->stop(); });
   fmt::print("igtl: stopped\n");
   return 0;
 }

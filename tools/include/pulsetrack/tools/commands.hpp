@@ -41,4 +41,8 @@ vision::Result<cv::Rect> parseRect(const std::string& text, const char* option);
 // "pulsetrack COMMAND: error: MESSAGE" on stderr; returns 1, the failure exit code.
 int commandError(const char* command, const std::string& message);
 
+// A server's foreground life: `run` blocks until `stop` is called, which happens at SIGINT or
+// SIGTERM (SIGPIPE ignored: a client that goes away is an error on its socket, not an end).
+void serveUntilSignal(const std::function<void()>& run, const std::function<void()>& stop);
+
 }  // namespace pulsetrack::tools
