@@ -15,13 +15,19 @@ std::atomic<bool> g_stop{false};
 void onSignal(int /*sig*/) { g_stop.store(true); }
 }  // namespace
 
-void serveUntilSignal(const std::function<void()>& run, const std::function<void()>& stop) {
+void catchStopSignals() {
   g_stop.store(false);
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
+}
+
+bool stopRequested() noexcept { return g_stop.load(); }
+
+void serveUntilSignal(const std::function<void()>& run, const std::function<void()>& stop) {
+  catchStopSignals();
   std::signal(SIGPIPE, SIG_IGN);
   std::thread watch([&] {
-    while (!g_stop.load()) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    while (!stopRequested()) std::this_thread::sleep_for(std::chrono::milliseconds(100));
     stop();
   });
   run();

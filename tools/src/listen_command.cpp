@@ -4,7 +4,6 @@
 #include <fmt/format.h>
 
 #include <chrono>
-#include <csignal>
 #include <memory>
 #include <optional>
 #include <string_view>
@@ -15,9 +14,6 @@
 namespace pulsetrack::tools {
 
 namespace {
-
-volatile std::sig_atomic_t g_stop = 0;
-void onSignal(int /*sig*/) { g_stop = 1; }
 
 struct ListenArgs {
   uint32_t domain = 0;
@@ -49,8 +45,7 @@ int runListen(const ListenArgs& a) {
                           dds::Profile::kTransientLocal);
   if (!def) return fmt::print(stderr, "listen: {}\n", def.error().message), 1;
   if (!health) return fmt::print(stderr, "listen: {}\n", health.error().message), 1;
-  std::signal(SIGINT, onSignal);
-  std::signal(SIGTERM, onSignal);
+  catchStopSignals();
   fmt::print(stderr, "listening on DDS domain {} ({} and {}); Ctrl-C to stop\n", a.domain,
              topics->deformation, topics->health);
   pulsetrack_msgs_msg_dds__Deformation_ d{};
@@ -61,7 +56,7 @@ int runListen(const ListenArgs& a) {
   auto last = t0;
   auto last_health = t0;
   int last_state = -1;
-  while (g_stop == 0) {
+  while (!stopRequested()) {
     if (a.seconds > 0 &&
         std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() >= a.seconds)
       break;

@@ -41,8 +41,14 @@ vision::Result<cv::Rect> parseRect(const std::string& text, const char* option);
 // "pulsetrack COMMAND: error: MESSAGE" on stderr; returns 1, the failure exit code.
 int commandError(const char* command, const std::string& message);
 
+// SIGINT and SIGTERM from now on ask the command to stop (stopRequested() turns true) instead of
+// killing it.
+void catchStopSignals();
+[[nodiscard]] bool stopRequested() noexcept;
+
 // A server's foreground life: `run` blocks until `stop` is called, which happens at SIGINT or
-// SIGTERM (SIGPIPE ignored: a client that goes away is an error on its socket, not an end).
+// SIGTERM (catchStopSignals). SIGPIPE is ignored: a client that goes away is an error on its
+// socket, not the server's end.
 void serveUntilSignal(const std::function<void()>& run, const std::function<void()>& stop);
 
 }  // namespace pulsetrack::tools
