@@ -10,6 +10,11 @@
 
 #include <CLI/CLI.hpp>
 #include <cstdio>
+#include <exception>
+#include <string>
+#include <vector>
+
+#include "data_paths.hpp"
 
 using namespace pulsetrack;
 
@@ -18,17 +23,21 @@ int main(int argc, char** argv) try {
       "Measure each tracker gate's false-reject and false-accept rates against ground truth: "
       "photographs with true disparity and a simulated scene"};
   std::string scene = std::string(PULSETRACK_SOURCE_DIR) + "/config/scenes/cortex-hard.toml";
-  std::vector<std::string> photos = {
-      std::string(PULSETRACK_SOURCE_DIR) + "/tests/data/middlebury/teddy",
-      std::string(PULSETRACK_SOURCE_DIR) + "/tests/data/middlebury/cones"};
+  // DIR[,FILE,SCALE]: the Middlebury pairs of ../shared/data by default (data_paths.hpp).
+  std::vector<std::string> photos;
+  for (const auto& m : data::middlebury()) {
+    photos.push_back(fmt::format("{},{},{}", m.dir.string(), m.disparity, m.scale));
+  }
   int pairs = 0;
   int dmin = 4, dmax = 60;
   bool no_scene = false;
   app.add_option("--scene", scene, "Cortex scene file (with truth)")->capture_default_str();
   app.add_option("--pairs", pairs, "Pairs of the scene to run (0: all)")
       ->check(CLI::NonNegativeNumber);
-  app.add_option("--photos", photos,
-                 "Folders with left.png, right.png, disparity.pgm (grey/4 = px, 0 unknown)")
+  app.add_option(
+         "--photos", photos,
+         "Photographs with true disparity: DIR[,FILE,SCALE], DIR holding left.png, "
+         "right.png and FILE (default disparity.pgm; grey/SCALE = px, default 4; 0 unknown)")
       ->capture_default_str();
   app.add_option("--dmin", dmin, "Smallest disparity of the photographs, px")
       ->capture_default_str();
@@ -83,8 +92,38 @@ int main(int argc, char** argv) try {
   config.grid_rows = config.grid_cols;
 
   if (no_photos) photos.clear();
-  for (const std::string& dir : photos) {
-    auto p = sim::loadPhotoPair(dir);
+  for (const std::string& photo : photos) {
+    const auto parts = [&photo] {
+      std::vector<std::string> v;
+      std::string::size_type start = 0;
+      for (auto comma = photo.find(',');; comma = photo.find(',', start)) {
+        v.push_back(photo.substr(start, comma - start));
+        if (comma == std::string::npos) return v;
+        start = comma + 1;
+      }
+    }();
+    const std::string& dir = parts[0];
+    if (parts.size() != 1 && parts.size() != 3) {
+      fmt::print(stderr, "gate_eval: --photos '{}': give DIR or DIR,FILE,SCALE\n", photo);
+      return 2;
+    }
+    if (const std::string why = data::absent(dir); !why.empty()) {
+      fmt::print(stderr, "gate_eval: {} (--no-photos for the scene alone)\n", why);
+      return 1;
+    }
+    double scale = 4.0;
+    if (parts.size() == 3) {
+      try {
+        scale = std::stod(parts[2]);
+      } catch (const std::exception&) {
+        scale = 0;
+      }
+      if (!(scale > 0)) {
+        fmt::print(stderr, "gate_eval: --photos '{}': SCALE must be a positive number\n", photo);
+        return 2;
+      }
+    }
+    auto p = sim::loadPhotoPair(dir, parts.size() == 3 ? parts[1] : "disparity.pgm", scale);
     if (!p) {
       fmt::print(stderr, "gate_eval: {}\n", p.error().message);
       return 1;

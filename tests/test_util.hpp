@@ -6,8 +6,11 @@
 #include <array>
 #include <cstdio>
 #include <filesystem>
+#include <iostream>
 #include <random>
 #include <string>
+
+#include "data_paths.hpp"
 
 namespace pulsetrack::test {
 
@@ -52,7 +55,14 @@ inline CommandResult run(const std::string& command) {
   return r;
 }
 
-inline std::string dataDir() { return PULSETRACK_TEST_DATA; }
+inline std::string sourceDir() { return PULSETRACK_SOURCE_DIR; }
 inline std::string cli() { return PULSETRACK_CLI; }
 
 }  // namespace pulsetrack::test
+
+// Skips the test loudly, naming the folder, when a data folder (tests/data_paths.hpp) is absent.
+#define PULSETRACK_SKIP_WITHOUT_DATA(dir)                                      \
+  if (const std::string why = ::pulsetrack::data::absent(dir); !why.empty()) { \
+    std::cerr << "SKIPPED: " << why << "\n";                                   \
+    GTEST_SKIP() << why;                                                       \
+  }

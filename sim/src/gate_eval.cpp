@@ -101,7 +101,8 @@ std::string formatGateTable(const GateTable& t, const std::string& title) {
 
 // --- Photographs ---
 
-vision::Result<PhotoPair> loadPhotoPair(const std::filesystem::path& dir, double scale) {
+vision::Result<PhotoPair> loadPhotoPair(const std::filesystem::path& dir,
+                                        const std::string& disparity, double scale) {
   PhotoPair p;
   p.name = dir.filename().string();
   const auto read = [](const std::filesystem::path& f, int flags, cv::Mat& m) -> std::string {
@@ -113,15 +114,14 @@ vision::Result<PhotoPair> loadPhotoPair(const std::filesystem::path& dir, double
     return m.empty() ? fmt::format("{}: missing or unreadable image", f.string()) : "";
   };
   cv::Mat disp8;
-  for (const auto& [f, flags, m] :
-       {std::tuple{dir / "left.png", cv::IMREAD_GRAYSCALE, &p.left},
-        std::tuple{dir / "right.png", cv::IMREAD_GRAYSCALE, &p.right},
-        std::tuple{dir / "disparity.pgm", cv::IMREAD_UNCHANGED, &disp8}}) {
+  for (const auto& [f, flags, m] : {std::tuple{dir / "left.png", cv::IMREAD_GRAYSCALE, &p.left},
+                                    std::tuple{dir / "right.png", cv::IMREAD_GRAYSCALE, &p.right},
+                                    std::tuple{dir / disparity, cv::IMREAD_UNCHANGED, &disp8}}) {
     if (std::string e = read(f, flags, *m); !e.empty()) return vision::fail(e);
   }
   if (p.right.size() != p.left.size() || disp8.size() != p.left.size() || disp8.type() != CV_8UC1) {
-    return vision::fail(fmt::format(
-        "{}: left, right and disparity.pgm (8-bit grey) must have one size", dir.string()));
+    return vision::fail(fmt::format("{}: left, right and {} (8-bit grey) must have one size",
+                                    dir.string(), disparity));
   }
   disp8.convertTo(p.disparity, CV_32F, 1.0 / scale);
   return p;

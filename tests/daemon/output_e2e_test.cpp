@@ -181,8 +181,9 @@ TEST(Ros2Output, ANodeBuiltFromTheMsgFilesReceivesANamespacedRigAndNothingOfAnot
 }
 
 // The cameras' preview as rqt_image_view (or any ROS 2 node) meets it: sensor_msgs/CompressedImage
-// built from the vendored .msg file, a JPEG whose own header gives the scaled size; at most the
-// configured rate (5 Hz here, 10 fps pairs); each feature's pixels inside the full image.
+// built from the .msg file (Debian's ros-sensor-msgs), a JPEG whose own header gives the scaled
+// size; at most the configured rate (5 Hz here, 10 fps pairs); each feature's pixels inside the
+// full image.
 TEST(Ros2Output, TheCamerasPreviewIsACompressedImageAndTheFeaturesCarryTheirPixels) {
   test::TempDir dir;
   const uint32_t domain = 96;
@@ -258,10 +259,10 @@ TEST(Ros2Output, TheCamerasPreviewIsACompressedImageAndTheFeaturesCarryTheirPixe
 }
 
 // The dense deformation field as rviz2 (or any ROS 2 node) meets it: sensor_msgs/PointCloud2
-// built from the vendored .msg files, each channel found by name and read at its declared offset
-// and datatype (ros2_subscriber shares no code with the daemon). Its content against the
-// deformation sample of the same pair: the grid's mean displacement is the surface's, within
-// 0.1 mm of the features' mean, while the surface moves more than that.
+// built from the .msg files (Debian's ros-sensor-msgs), each channel found by name and read at its
+// declared offset and datatype (ros2_subscriber shares no code with the daemon). Its content
+// against the deformation sample of the same pair: the grid's mean displacement is the surface's,
+// within 0.1 mm of the features' mean, while the surface moves more than that.
 TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesAndTargetsAreFollowed) {
   test::TempDir dir;
   const uint32_t domain = 88;

@@ -13,6 +13,8 @@
 #include <string>
 #include <vector>
 
+#include "data_paths.hpp"
+
 extern char** environ;
 
 namespace pulsetrack::dds {
@@ -118,11 +120,11 @@ TEST(Dds, Ros2MessagesMatchTheIdl) {
     EXPECT_FALSE(a.empty()) << t;
     EXPECT_EQ(a, b) << t;
   }
-  // sensor_msgs/PointCloud2 (the field) as ROS 2 defines it: the vendored .msg files.
+  // sensor_msgs/PointCloud2 (the field) and CompressedImage (the preview) as ROS defines them:
+  // Debian's ros-sensor-msgs (data_paths.hpp).
   for (const char* t : {"PointField", "PointCloud2", "CompressedImage"}) {
     const auto a = idlFields(idl, t);
-    const auto b = msgFields(std::string(PULSETRACK_SOURCE_DIR) +
-                             "/tests/ros2_compat/vendor/sensor_msgs/msg/" + t + ".msg");
+    const auto b = msgFields(data::rosMsg("sensor_msgs", t).string());
     EXPECT_FALSE(a.empty()) << t;
     EXPECT_EQ(a, b) << t;
   }

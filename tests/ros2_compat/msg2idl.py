@@ -3,7 +3,7 @@
 
 usage: msg2idl.py [--out FILE] PKG/msg/Name.msg...
 
-Each input's package is the name of the folder above its msg/ folder (vendor/std_msgs/msg/
+Each input's package is the name of the folder above its msg/ folder (ros2/std_msgs/msg/
 Header.msg is std_msgs/Header). The output holds every input message, dependencies first, each
 once, as
 

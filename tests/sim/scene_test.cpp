@@ -13,7 +13,7 @@
 namespace pulsetrack::sim {
 namespace {
 
-std::string configDir() { return test::dataDir() + "/../../config"; }
+std::string configDir() { return test::sourceDir() + "/config"; }
 
 TEST(SceneFile, ShippedScenesLoad) {
   for (const char* name : {"cortex-60s", "cortex-hard", "cortex-1h", "cortex-1h-compressed",

@@ -16,7 +16,7 @@
 namespace pulsetrack {
 namespace {
 
-std::string scenes() { return test::dataDir() + "/../../config/scenes"; }
+std::string scenes() { return test::sourceDir() + "/config/scenes"; }
 
 TEST(SimulateCli, CortexRecordingWithTruth) {
   test::TempDir dir;

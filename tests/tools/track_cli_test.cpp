@@ -22,7 +22,7 @@ namespace {
 
 const std::string kRois = " --roi-left 483,339,400,340 --roi-right 476,344,400,340 --depth 20 ";
 
-std::string scenes() { return test::dataDir() + "/../../config/scenes"; }
+std::string scenes() { return test::sourceDir() + "/config/scenes"; }
 
 TEST(TrackCli, RecordingTrackedAndScored) {
   test::TempDir dir;

@@ -25,7 +25,7 @@ namespace pulsetrack {
 namespace {
 
 const std::string kRois = " --roi-left 483,339,400,340 --roi-right 476,344,400,340 --depth 20 ";
-std::string scenes() { return test::dataDir() + "/../../config/scenes"; }
+std::string scenes() { return test::sourceDir() + "/config/scenes"; }
 
 // A simulated recording of `frames` pairs (10 fps).
 void simulate(const test::TempDir& dir, int frames) {

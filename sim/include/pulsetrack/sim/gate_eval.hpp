@@ -3,8 +3,8 @@
 // the matches it was evaluated on, how many right ones it rejects (false reject) and how many
 // wrong ones it lets through (false accept), on
 // - real photographs with ground-truth disparity (Middlebury 2003 teddy and cones, in
-//   tests/data/middlebury), beside a plain OpenCV matcher (Harris corners, matchTemplate along
-//   the row, quadratic peak, left-right check) run on the same pair;
+//   ../shared/data/middlebury-*), beside a plain OpenCV matcher (Harris corners, matchTemplate
+//   along the row, quadratic peak, left-right check) run on the same pair;
 // - a simulated scene with truth (config/scenes/cortex-hard.toml): the detections' candidates
 //   and every feature of every pair, tracked by the TrackingSession as the daemon does.
 // A match is right when both its views are within 1 px of the truth (and, in the simulator,
@@ -58,8 +58,11 @@ struct PhotoPair {
   cv::Mat left, right;  // 8-bit grey
   cv::Mat disparity;    // CV_32FC1, px, of the left view; 0 = unknown
 };
-// <dir>/left.png, right.png, disparity.pgm (grey / `scale` = px; 0 unknown). Errors name the file.
-vision::Result<PhotoPair> loadPhotoPair(const std::filesystem::path& dir, double scale = 4.0);
+// <dir>/left.png, right.png and the true disparity <dir>/<disparity> (8-bit grey / `scale` = px,
+// 0 unknown: Middlebury's disp2 is quarter pixels, scale 4). Errors name the file.
+vision::Result<PhotoPair> loadPhotoPair(const std::filesystem::path& dir,
+                                        const std::string& disparity = "disparity.pgm",
+                                        double scale = 4.0);
 // A rectified rig for such a pair: identical pinhole cameras (f px, principal point at the
 // centre), the right one `baseline_mm` along +x.
 vision::StereoRig rectifiedRig(cv::Size size, double f_px = 500.0, double baseline_mm = 20.0);
