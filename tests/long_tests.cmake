@@ -20,3 +20,8 @@ set(pulsetrack_long_tests
 foreach(t IN LISTS pulsetrack_long_tests)
   set_tests_properties(${t} PROPERTIES LABELS long)
 endforeach()
+# The longest first, so that two run side by side to the end (a fresh clone has no cost data:
+# in test order the soak, 168 s, started last and ran alone). Seconds, release, cold run.
+set_tests_properties(TrackingSession.HoursLongTrackingKeepsIdsAndStaysDriftFree PROPERTIES COST 85)
+set_tests_properties(AnalyzeCli.CortexCaseBreathingAndCardiacAgainstTheTruth PROPERTIES COST 63)
+set_tests_properties(Robustness.HardCortexSceneKeepsFeaturesAndTheirIds PROPERTIES COST 48)
