@@ -327,6 +327,14 @@ TEST(CheckCommand, HostileFieldsAreRefusedPrintably) {
   std::copy_n(good, 4, c.roi_right);
   c.depth_tolerance_m = 0.02;
   ASSERT_EQ(check().kind, CommandKind::kSetRoi) << check().refusal;
+  // A left ROI only (the right one all zero): the right ROI and the tolerance are found in the
+  // next pair, so no depth is needed.
+  std::fill_n(c.roi_right, 4, 0);
+  c.depth_tolerance_m = 0.0;
+  EXPECT_EQ(check().kind, CommandKind::kSetRoi) << check().refusal;
+  EXPECT_EQ(check().roi.right, cv::Rect());
+  std::copy_n(good, 4, c.roi_right);
+  c.depth_tolerance_m = 0.02;
   for (const auto& bad :
        {std::array<int, 4>{INT_MAX, 0, INT_MAX, 300}, std::array<int, 4>{0, INT_MAX - 10, 400, 100},
         std::array<int, 4>{INT_MIN, INT_MIN, INT_MAX, INT_MAX},

@@ -209,6 +209,26 @@ TEST(TrackCli, ClearErrors) {
   EXPECT_NE(r.output.find("left ROI 1300,1000 200x200: not inside the 1360x1024 image"),
             std::string::npos)
       << r.output;
+  // The cameras given twice, a depth range that is not one, a --rectified that is not four numbers.
+  r = test::run(test::cli() + " track --input " + (dir / "rec") + " --rig " +
+                (dir / "rec/rig.yaml") +
+                " --rectified 1000,680,512,60 --roi-left 400,300,500,400 "
+                "--out " +
+                (dir / "x.csv"));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("give one of --rig, --rectified and --camera-info"), std::string::npos)
+      << r.output;
+  r = test::run(test::cli() + " track --input " + (dir / "rec") +
+                " --roi-left 400,300,500,400 --depth-range 500,20 --out " + (dir / "x.csv"));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("--depth-range 500,20: expected near,far in mm"), std::string::npos)
+      << r.output;
+  r = test::run(test::cli() + " track --input " + (dir / "rec") +
+                " --rectified 1000,680 --roi-left 400,300,500,400 --out " + (dir / "x.csv"));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("--rectified 1000,680: expected four numbers f,cx,cy,baseline_mm"),
+            std::string::npos)
+      << r.output;
   // A recording with no frame (its frames.ptv cut to the header) is an error, not "0 features"
   // and exit 0 (found by fuzzing, issue 15).
   std::filesystem::resize_file(dir / "rec/frames.ptv", 32);

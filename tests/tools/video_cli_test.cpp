@@ -297,8 +297,10 @@ TEST(VideoFiles, BadVideoInputIsAClearError) {
   r = test::run(test::cli() + " track" + rig + " --video " + (dir / "small.mkv") + kRois +
                 "--out " + (dir / "x.csv"));
   EXPECT_EQ(r.exit_code, 1);
-  EXPECT_NE(r.output.find("each view is 64x64, the rig's cameras 1360x1024"), std::string::npos)
+  EXPECT_NE(r.output.find("the calibration is for 1360x1024 images, each view of "),
+            std::string::npos)
       << r.output;
+  EXPECT_NE(r.output.find("small.mkv (side by side) is 64x64"), std::string::npos) << r.output;
   r = test::run(test::cli() + " track" + rig + " --left-video " + (dir / "small.mkv") +
                 " --right-video " + (dir / "other.mkv") + kRois + "--out " + (dir / "x.csv"));
   EXPECT_NE(r.output.find("the views must be the same size"), std::string::npos) << r.output;

@@ -2,6 +2,7 @@
 
 #include "pulsetrack/vision/stereo_rig.hpp"
 
+#include <fmt/format.h>
 #include <gtest/gtest.h>
 
 #include <fstream>
@@ -112,7 +113,7 @@ TEST_F(RigFile, EmptyFile) {
 }
 
 TEST_F(RigFile, MissingKeys) {
-  for (const char* key : {"M1", "D1", "M2", "D2", "R", "T", "rms", "image_size"}) {
+  for (const char* key : {"M1", "D1", "M2", "D2", "R", "T"}) {
     SCOPED_TRACE(key);
     expectError(removeKey(key), std::string("key '") + key + "' is missing");
   }
@@ -274,6 +275,148 @@ TEST_F(RigFile, ValuesNoRealRigHasAreRefusedWithTheirKey) {
       replaceKey("T",
                  "T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [ 1e9, 0, 0 ]"),
       "key 'T': baseline 1000000000 mm is more than");
+}
+
+// OpenCV's own stereoCalibrate output as its stereo_calib sample and many tools save it: float
+// matrices, T as a row, neither image_size nor rms. The size then comes from the images.
+TEST(RigForms, OpenCvFileWithoutImageSizeOrRmsTakesTheImagesSize) {
+  test::TempDir dir;
+  const StereoRig ref = sampleRig();
+  const std::string path = dir / "extrinsics.yml";
+  {
+    cv::FileStorage fs(path, cv::FileStorage::WRITE);
+    cv::Mat m1, m2, d1, d2, r, t;
+    cv::Mat(ref.left.k()).convertTo(m1, CV_32F);
+    cv::Mat(ref.right.k()).convertTo(m2, CV_32F);
+    cv::Mat(1, 5, CV_64F, const_cast<double*>(ref.left.dist().data())).convertTo(d1, CV_32F);
+    cv::Mat(1, 8, CV_64F, const_cast<double*>(ref.right.dist().data())).convertTo(d2, CV_32F);
+    cv::Mat(ref.r).convertTo(r, CV_32F);
+    cv::Mat(ref.t).reshape(1, 1).convertTo(t, CV_32F);  // 1x3
+    fs << "M1" << m1 << "D1" << d1 << "M2" << m2 << "D2" << d2 << "R" << r << "T" << t;
+  }
+  auto no_images = loadRig(path);
+  ASSERT_FALSE(no_images);
+  EXPECT_NE(no_images.error().message.find("key 'image_size' is missing, and there are no images"),
+            std::string::npos)
+      << no_images.error().message;
+  auto rig = loadRig(path, {1360, 1024}, "video.mp4");
+  ASSERT_TRUE(rig) << rig.error().message;
+  EXPECT_EQ(rig->left.imageSize(), cv::Size(1360, 1024));
+  EXPECT_EQ(rig->rms, 0.0);
+  for (int i = 0; i < 9; ++i) EXPECT_NEAR(rig->left.k().val[i], ref.left.k().val[i], 1e-3);
+  for (int i = 0; i < 8; ++i) EXPECT_NEAR(rig->right.dist()[i], ref.right.dist()[i], 1e-6);
+  for (int i = 0; i < 3; ++i) EXPECT_NEAR(rig->t[i], ref.t[i], 1e-5);
+  for (int i = 0; i < 9; ++i) EXPECT_NEAR(rig->r.val[i], ref.r.val[i], 1e-6);
+}
+
+TEST(RigForms, ACalibrationOfAnotherSizeIsANamedError) {
+  test::TempDir dir;
+  ASSERT_TRUE(saveRig(sampleRig(), dir / "rig.yaml"));
+  auto rig = loadRig(dir / "rig.yaml", {640, 512}, "each view of case7.mp4");
+  ASSERT_FALSE(rig);
+  EXPECT_NE(rig.error().message.find("rig.yaml: key 'image_size': the calibration is for "
+                                     "1360x1024 images, each view of case7.mp4 is 640x512"),
+            std::string::npos)
+      << rig.error().message;
+  EXPECT_TRUE(loadRig(dir / "rig.yaml", {1360, 1024}, "x"));
+}
+
+TEST(RigForms, TheRealEndoscopeCalibrationAsShippedLoads) {
+  const auto dir = data::shared("surgt-labelling-sample");
+  PULSETRACK_SKIP_WITHOUT_DATA(dir);
+  // As shipped: no image_size, no rms (the issue's "key 'image_size' is missing").
+  auto rig = loadRig(dir / "rig.yaml", {1280, 1024}, "each view of video.mp4");
+  ASSERT_TRUE(rig) << rig.error().message;
+  EXPECT_EQ(rig->left.imageSize(), cv::Size(1280, 1024));
+  EXPECT_GT(cv::norm(rig->t), 1.0);  // a stereo endoscope's baseline: mm, not 0
+  EXPECT_LT(cv::norm(rig->t), 10.0);
+}
+
+TEST(RigForms, RectifiedFocalPrincipalPointAndBaseline) {
+  auto rig = parseRectified("579.05,180,144,5.5", {360, 288});
+  ASSERT_TRUE(rig) << rig.error().message;
+  EXPECT_EQ(rig->left.imageSize(), cv::Size(360, 288));
+  EXPECT_DOUBLE_EQ(rig->left.k()(0, 0), 579.05);
+  EXPECT_DOUBLE_EQ(rig->right.k()(1, 2), 144.0);
+  EXPECT_DOUBLE_EQ(rig->t[0], -5.5);
+  // A point at 40 mm: disparity f B / Z, rows aligned.
+  const cv::Vec3d p(3.0, -2.0, 40.0);
+  const cv::Vec2d l = rig->projectLeft(p), r = rig->projectRight(p);
+  EXPECT_NEAR(l[0] - r[0], 579.05 * 5.5 / 40.0, 1e-9);
+  EXPECT_NEAR(l[1], r[1], 1e-9);
+  for (const char* bad : {"579,180,144", "579,180,144,5.5,1", "f,180,144,5.5", "579,180,,5.5",
+                          "579,180,144,0", "-579,180,144,5.5", "579,180,144,nan"}) {
+    SCOPED_TRACE(bad);
+    auto r2 = parseRectified(bad, {360, 288});
+    ASSERT_FALSE(r2);
+    EXPECT_NE(r2.error().message.find(std::string("--rectified ") + bad), std::string::npos)
+        << r2.error().message;
+  }
+  EXPECT_FALSE(parseRectified("579,180,144,5.5", {}));
+}
+
+// A ROS camera_info file in camera_calibration_parsers' documented layout.
+std::string cameraInfoYaml(const char* name, const CameraModel& cam, const char* model,
+                           const cv::Mat& rect, const cv::Mat& proj) {
+  const auto row = [](const double* v, int n) {
+    std::string s;
+    for (int i = 0; i < n; ++i) s += fmt::format("{}{}", i ? ", " : "", v[i]);
+    return s;
+  };
+  const auto block = [&](const char* key, int rows, int cols, const double* v) {
+    return fmt::format("{}:\n  rows: {}\n  cols: {}\n  data: [{}]\n", key, rows, cols,
+                       row(v, rows * cols));
+  };
+  return fmt::format("image_width: {}\nimage_height: {}\ncamera_name: {}\n", cam.imageSize().width,
+                     cam.imageSize().height, name) +
+         block("camera_matrix", 3, 3, cam.k().val) + fmt::format("distortion_model: {}\n", model) +
+         block("distortion_coefficients", 1, cam.numDistortion(), cam.dist().data()) +
+         block("rectification_matrix", 3, 3, rect.ptr<double>()) +
+         block("projection_matrix", 3, 4, proj.ptr<double>());
+}
+
+TEST(RigForms, RosCameraInfoPairGivesTheRigBack) {
+  test::TempDir dir;
+  const StereoRig ref = sampleRig();
+  // What ROS's stereo calibration does: OpenCV's stereoRectify, lengths in metres.
+  cv::Mat r1, r2, p1, p2, q;
+  cv::stereoRectify(
+      cv::Mat(ref.left.k()), cv::Mat(1, 5, CV_64F, const_cast<double*>(ref.left.dist().data())),
+      cv::Mat(ref.right.k()), cv::Mat(1, 8, CV_64F, const_cast<double*>(ref.right.dist().data())),
+      ref.left.imageSize(), cv::Mat(ref.r), cv::Mat(ref.t * 1e-3), r1, r2, p1, p2, q, 0);
+  std::ofstream(dir / "left.yaml") << cameraInfoYaml("left", ref.left, "plumb_bob", r1, p1);
+  std::ofstream(dir / "right.yaml")
+      << cameraInfoYaml("right", ref.right, "rational_polynomial", r2, p2);
+  auto rig = loadCameraInfoPair(dir / "left.yaml", dir / "right.yaml", {1360, 1024}, "x");
+  ASSERT_TRUE(rig) << rig.error().message;
+  for (int i = 0; i < 9; ++i) EXPECT_NEAR(rig->r.val[i], ref.r.val[i], 1e-9);
+  for (int i = 0; i < 3; ++i) EXPECT_NEAR(rig->t[i], ref.t[i], 1e-6);  // mm
+  for (int i = 0; i < 9; ++i) EXPECT_EQ(rig->right.k().val[i], ref.right.k().val[i]);
+  EXPECT_EQ(rig->right.numDistortion(), 8);
+
+  // The left file given twice: its P has no baseline.
+  auto twice = loadCameraInfoPair(dir / "left.yaml", dir / "left.yaml");
+  ASSERT_FALSE(twice);
+  EXPECT_NE(twice.error().message.find("P[0][3] (Tx = -fx * baseline) is zero"), std::string::npos)
+      << twice.error().message;
+  // Another size than the images; a missing key; an unknown distortion model.
+  auto size = loadCameraInfoPair(dir / "left.yaml", dir / "right.yaml", {640, 480}, "cam.mp4");
+  ASSERT_FALSE(size);
+  EXPECT_NE(size.error().message.find("left.yaml: image_width x image_height 1360x1024, cam.mp4 is "
+                                      "640x480"),
+            std::string::npos)
+      << size.error().message;
+  std::ofstream(dir / "bad.yaml") << "image_width: 1360\nimage_height: 1024\n";
+  auto missing = loadCameraInfoPair(dir / "left.yaml", dir / "bad.yaml");
+  ASSERT_FALSE(missing);
+  EXPECT_NE(missing.error().message.find("bad.yaml"), std::string::npos);
+  EXPECT_NE(missing.error().message.find("camera_matrix"), std::string::npos)
+      << missing.error().message;
+  std::ofstream(dir / "fish.yaml") << cameraInfoYaml("right", ref.right, "equidistant", r2, p2);
+  auto fish = loadCameraInfoPair(dir / "left.yaml", dir / "fish.yaml");
+  ASSERT_FALSE(fish);
+  EXPECT_NE(fish.error().message.find("'equidistant' is not supported"), std::string::npos)
+      << fish.error().message;
 }
 
 TEST(RigSave, RefusesAnInvalidRig) {

@@ -309,6 +309,18 @@ TEST(TrackingSession, StopStartAndRoiChangesRestartTheSignalAndSayWhy) {
   EXPECT_TRUE(session.last().deformation.continuous);
   EXPECT_EQ(session.last().deformation.detections, 2U);
   EXPECT_TRUE(pair(8).deformation.continuous);
+  // A left ROI only (the daemon's set_roi with the right one all zero): the right ROI and the
+  // depth tolerance are found in the pair, and cover the one the scene's depth gives.
+  session.setRoi({config.roi.left, {}}, 0.0);
+  EXPECT_TRUE(pair(9).detected) << session.reason();
+  EXPECT_EQ(session.last().state, SessionState::kTracking);
+  EXPECT_EQ(session.rangeSerial(), 1U);
+  const StereoRange& found = session.stereoRange();
+  EXPECT_GT((found.right & config.roi.right).area(), config.roi.right.area() / 2)
+      << found.summary();
+  const double z = s.cortex()->position(0.0, 0.0, 0.0)[2];  // the scene's own depth
+  EXPECT_NEAR(found.depth_mm, z, 0.05 * z) << found.summary();
+  EXPECT_GE(session.tracker().okCount(), 50);
 }
 
 }  // namespace

@@ -27,9 +27,12 @@ namespace {
 
 struct CommonArgs {
   std::string rig;
+  std::string rectified;
+  std::vector<std::string> camera_info;
   std::string roi_left;
   std::string roi_right;
   double depth = 20.0;
+  std::string depth_range;
   int max_features = 100;
   int stereo_refresh = vision::TrackerConfig{}.stereo_refresh;
   bool no_refinement = false;
@@ -46,16 +49,30 @@ struct CommonArgs {
   }
 };
 
-void addCommon(CLI::App* cmd, CommonArgs& a, bool rig_required) {
-  auto* rig = cmd->add_option("--rig", a.rig, "Rig YAML (pulsetrack calibrate)");
-  if (rig_required) rig->required();
-  cmd->add_option("--roi-left", a.roi_left, "Left ROI on the brain surface: x,y,w,h (px)")
-      ->required();
-  cmd->add_option("--roi-right", a.roi_right, "The corresponding right ROI: x,y,w,h (px)")
-      ->required();
-  cmd->add_option("--depth", a.depth, "Depth tolerance of the stereo search box (mm)")
+void addCommon(CLI::App* cmd, CommonArgs& a) {
+  cmd->add_option("--rig", a.rig,
+                  "Rig YAML: pulsetrack calibrate's, or OpenCV's stereo calibration (M1 D1 M2 D2 "
+                  "R T; image_size and rms optional)");
+  cmd->add_option("--rectified", a.rectified,
+                  "Instead of --rig, for already rectified images: f,cx,cy,baseline_mm (focal "
+                  "length and principal point in px)");
+  cmd->add_option("--camera-info", a.camera_info,
+                  "Instead of --rig: the left and right ROS camera_info YAML files of a stereo "
+                  "pair (LEFT.yaml,RIGHT.yaml)")
+      ->delimiter(',')
+      ->expected(2);
+  cmd->add_option("--roi-left", a.roi_left, "Left ROI on the tissue: x,y,w,h (px)")->required();
+  cmd->add_option("--roi-right", a.roi_right,
+                  "The corresponding right ROI: x,y,w,h (px); default: found in the first pair "
+                  "by searching the left ROI's epipolar lines over --depth-range");
+  cmd->add_option("--depth", a.depth,
+                  "With --roi-right: depth tolerance of the stereo search box (mm)")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
+  cmd->add_option("--depth-range", a.depth_range,
+                  "Without --roi-right: the depths searched for the left ROI's surface, "
+                  "near,far in mm")
+      ->default_str("20,1000");
   cmd->add_option("--max-features", a.max_features, "Feature ceiling")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
@@ -74,12 +91,37 @@ void addCommon(CLI::App* cmd, CommonArgs& a, bool rig_required) {
   cmd->add_option("--out", a.out, "CSV to write")->required();
 }
 
+// The left ROI, and the right one when given (else empty: found in the pair).
 vision::Result<vision::Roi> rois(const CommonArgs& a) {
   auto l = parseRect(a.roi_left, "--roi-left");
   if (!l) return std::unexpected(l.error());
+  if (a.roi_right.empty()) return vision::Roi{*l, {}};
   auto r = parseRect(a.roi_right, "--roi-right");
   if (!r) return std::unexpected(r.error());
   return vision::Roi{*l, *r};
+}
+
+vision::Result<vision::StereoSearchConfig> searchConfig(const CommonArgs& a) {
+  if (a.depth_range.empty()) return vision::StereoSearchConfig{};
+  return vision::parseDepthRange(a.depth_range);
+}
+
+// The rig from --rig, --rectified or --camera-info (one of them), for images of data_size
+// (named data_name in messages): a calibration without image_size takes it from them.
+vision::Result<vision::StereoRig> loadRigArgs(const CommonArgs& a, cv::Size data_size,
+                                              const std::string& data_name) {
+  const int given = static_cast<int>(!a.rig.empty()) + static_cast<int>(!a.rectified.empty()) +
+                    static_cast<int>(!a.camera_info.empty());
+  if (given > 1) return vision::fail("give one of --rig, --rectified and --camera-info");
+  if (given == 0) return vision::fail("give the cameras: --rig, --rectified or --camera-info");
+  if (!a.rectified.empty()) return vision::parseRectified(a.rectified, data_size);
+  if (!a.camera_info.empty())
+    return vision::loadCameraInfoPair(a.camera_info[0], a.camera_info[1], data_size, data_name);
+  return vision::loadRig(a.rig, data_size, data_name);
+}
+
+bool rigGiven(const CommonArgs& a) {
+  return !a.rig.empty() || !a.rectified.empty() || !a.camera_info.empty();
 }
 
 vision::Result<cv::Mat> readGrey(const std::string& path) {
@@ -99,17 +141,29 @@ struct MatchArgs : CommonArgs {
 };
 
 int runMatch(const MatchArgs& a) {
-  auto rig = vision::loadRig(a.rig);
-  if (!rig) return commandError("match", rig.error().message);
   auto roi = rois(a);
   if (!roi) return commandError("match", roi.error().message);
+  auto search = searchConfig(a);
+  if (!search) return commandError("match", search.error().message);
   auto left = readGrey(a.left);
   if (!left) return commandError("match", left.error().message);
   auto right = readGrey(a.right);
   if (!right) return commandError("match", right.error().message);
+  auto rig = loadRigArgs(a, left->size(), a.left);
+  if (!rig) return commandError("match", rig.error().message);
+  double depth = a.depth;
+  if (roi->right == cv::Rect()) {
+    auto found = vision::findStereoRange(*rig, *left, *right, roi->left, *search);
+    if (!found) return commandError("match", found.error().message);
+    fmt::print("stereo search     {}\n", found->summary());
+    roi->right = found->right;
+    depth = found->tolerance_mm;
+  }
+  if (auto usable = vision::TrackingSession::checkRoi(*rig, *roi, depth); !usable)
+    return commandError("match", usable.error().message);
   const vision::TrackerConfig config = a.config();
   vision::StereoTracker tracker(*rig, config);
-  auto ok = tracker.initialize(*left, *right, *roi, a.depth);
+  auto ok = tracker.initialize(*left, *right, *roi, depth);
   if (!ok) return commandError("match", ok.error().message);
   std::ofstream out(a.out);
   out << "id,xl,yl,xr,yr,ncc,nmi,epipolar_px,x,y,z,status\n";
@@ -151,6 +205,8 @@ std::string deformationPath(const TrackArgs& a) {
 int runTrack(const TrackArgs& a) {
   auto roi = rois(a);
   if (!roi) return commandError("track", roi.error().message);
+  auto search = searchConfig(a);
+  if (!search) return commandError("track", search.error().message);
   std::optional<record::Reader> reader;
   std::optional<record::StereoVideoReader> video;
   std::vector<std::pair<std::string, std::string>> pairs;
@@ -164,7 +220,9 @@ int runTrack(const TrackArgs& a) {
                         "give one input: --input, --left/--right, --video, or "
                         "--left-video/--right-video");
   if (!a.video.empty() || !a.left_video.empty() || !a.right_video.empty()) {
-    if (a.rig.empty()) return commandError("track", "--rig is required with video files");
+    if (!rigGiven(a))
+      return commandError("track",
+                          "--rig, --rectified or --camera-info is required with video files");
     auto layout = record::parseVideoLayout(a.video.empty() ? "two" : a.layout);
     if (!layout) return commandError("track", layout.error().message);
     if (a.video.empty() && (a.left_video.empty() || a.right_video.empty()))
@@ -193,21 +251,31 @@ int runTrack(const TrackArgs& a) {
     if (!p) return commandError("track", p.error().message);
     pairs = std::move(*p);
   }
-  if (!a.rig.empty()) {
-    auto r = vision::loadRig(a.rig);
+  if (rigGiven(a)) {
+    // The data's size: a calibration without image_size takes it, one with it must agree.
+    cv::Size data_size;
+    std::string data_name;
+    if (video) {
+      data_size = video->viewSize();
+      data_name = fmt::format("each view of {}", video->name());
+    } else if (reader) {
+      data_size = reader->rig().left.imageSize();
+      data_name = fmt::format("the recording {}", a.input);
+    } else {
+      auto first = readGrey(pairs.front().first);
+      if (!first) return commandError("track", first.error().message);
+      data_size = first->size();
+      data_name = pairs.front().first;
+    }
+    auto r = loadRigArgs(a, data_size, data_name);
     if (!r) return commandError("track", r.error().message);
     rig = *r;
   } else if (!reader) {
-    return commandError("track", "--rig is required with image sequences");
+    return commandError("track",
+                        "--rig, --rectified or --camera-info is required with image sequences");
   }
   if (auto ok = vision::TrackingSession::checkRoi(rig, *roi, a.depth); !ok)
     return commandError("track", ok.error().message);
-  if (video && video->viewSize() != rig.left.imageSize()) {
-    return commandError(
-        "track", fmt::format("{}: each view is {}x{}, the rig's cameras {}x{} ({})", video->name(),
-                             video->viewSize().width, video->viewSize().height,
-                             rig.left.imageSize().width, rig.left.imageSize().height, a.rig));
-  }
   // A video's length is known at its end (a container's frame count is an estimate).
   size_t n = reader ? reader->size() : video ? 0 : pairs.size();
   // The daemon's policy, the same code: detection, retries, re-detection, stereo refresh and
@@ -216,6 +284,7 @@ int runTrack(const TrackArgs& a) {
   sc.tracker = a.config();
   sc.roi = *roi;
   sc.depth_tolerance_mm = a.depth;
+  sc.search = *search;
   sc.retry_interval_s = a.retry_interval;
   sc.velocity_window_s = a.velocity_window;
   vision::TrackingSession session(rig, sc);
@@ -259,7 +328,7 @@ int runTrack(const TrackArgs& a) {
   std::vector<double> step_us;
   cv::Mat left, right;
   int initial = -1;
-  uint64_t reason_seen = 0;
+  uint64_t reason_seen = 0, range_seen = 0;
   for (size_t i = 0; video || i < n; ++i) {
     long frame = static_cast<long>(i);
     double t = static_cast<double>(i) / a.fps;
@@ -301,6 +370,11 @@ int runTrack(const TrackArgs& a) {
     if (session.reasonSerial() != reason_seen && !session.reason().empty()) {
       reason_seen = session.reasonSerial();
       if (!a.quiet) fmt::print(stderr, "frame {}: not tracking: {}\n", frame, session.reason());
+    }
+    if (session.rangeSerial() != range_seen) {
+      range_seen = session.rangeSerial();
+      if (!a.quiet)
+        fmt::print(stderr, "frame {}: stereo search: {}\n", frame, session.stereoRange().summary());
     }
     if (pr.detected && !a.quiet) {
       fmt::print(stderr, "frame {}: {} features {}\n", frame, session.tracker().okCount(),
@@ -374,6 +448,8 @@ int runTrack(const TrackArgs& a) {
       n, initial, session.tracker().okCount(), session.redetections(), pct(0.5), pct(0.99),
       step_us.empty() ? 0.0 : step_us.back(), a.out, def_path, deformation.size(), prediction_path,
       prediction_rows);
+  if (session.rangeSerial() > 0)
+    fmt::print("stereo search     {}\n", session.stereoRange().summary());
   if (field_out) {
     auto lines = field_out->finish();
     if (!lines) return commandError("track", lines.error().message);
@@ -388,7 +464,7 @@ CommandRunner addMatchCommand(CLI::App& app) {
   auto args = std::make_shared<MatchArgs>();
   CLI::App* cmd = app.add_subcommand(
       "match", "Detect features in the left ROI and match them in the right image (one pair).");
-  addCommon(cmd, *args, true);
+  addCommon(cmd, *args);
   cmd->add_option("--left", args->left, "Left image")->required();
   cmd->add_option("--right", args->right, "Right image")->required();
   return [args] { return runMatch(*args); };
@@ -400,7 +476,7 @@ CommandRunner addTrackCommand(CLI::App& app) {
       app.add_subcommand("track",
                          "Track features through a recording, an image sequence or stereo video; "
                          "writes frame,t,id,xl,yl,xr,yr,x,y,z,ncc,nmi,status.");
-  addCommon(cmd, *args, false);
+  addCommon(cmd, *args);
   cmd->add_option("--input", args->input,
                   "Recording folder (its rig.yaml is used unless --rig is given)");
   cmd->add_option("--left", args->left,

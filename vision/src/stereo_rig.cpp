@@ -4,8 +4,10 @@
 #include <yaml-cpp/eventhandler.h>
 #include <yaml-cpp/yaml.h>
 
+#include <array>
 #include <cctype>
 #include <cmath>
+#include <cstdlib>
 #include <fstream>
 #include <iterator>
 #include <limits>
@@ -193,7 +195,9 @@ std::optional<double> scalarNumber(const YAML::Node& n) {
 
 // An opencv-matrix (rows, cols, dt, data) as OpenCV's FileStorage writes it, read without
 // OpenCV's parser (it loops forever on some malformed files: fuzz_rig).
-Result<cv::Mat> readMatrix(const YAML::Node& root, const std::string& where, const char* key) {
+// `need_dt`: ROS camera_info matrices carry rows, cols and data only.
+Result<cv::Mat> readMatrix(const YAML::Node& root, const std::string& where, const char* key,
+                           bool need_dt = true) {
   const YAML::Node node = root[key];
   if (!node) return fail(fmt::format("{}: key '{}' is missing", where, key));
   if (!node.IsMap()) {
@@ -213,7 +217,10 @@ Result<cv::Mat> readMatrix(const YAML::Node& root, const std::string& where, con
     size[k] = v;
   }
   const YAML::Node dt = node["dt"];
-  if (!dt || !dt.IsScalar() || (dt.Scalar() != "d" && dt.Scalar() != "f" && dt.Scalar() != "i")) {
+  const bool dt_ok =
+      dt ? dt.IsScalar() && (dt.Scalar() == "d" || dt.Scalar() == "f" || dt.Scalar() == "i")
+         : !need_dt;
+  if (!dt_ok) {
     return fail(fmt::format("{}: key '{}': matrix must have one channel (dt d, f or i), got '{}'",
                             where, key, dt && dt.IsScalar() ? dt.Scalar() : std::string()));
   }
@@ -295,22 +302,38 @@ int countDocuments(const std::string& text, int limit) {
 }
 
 // The keys of a parsed rig file.
-Result<StereoRig> readRigKeys(const YAML::Node& root, const std::string& where) {
+Result<StereoRig> readRigKeys(const YAML::Node& root, const std::string& where, cv::Size data_size,
+                              const std::string& data_name) {
   if (root.IsNull()) return fail(fmt::format("{}: empty: not valid OpenCV YAML (no keys)", where));
   if (!root.IsMap()) {
     return fail(
         fmt::format("{}: the top level must be a map of keys (image_size, M1, D1, ...)", where));
   }
+  // image_size is optional (OpenCV's stereo_calib sample and many tools do not write it): the
+  // images' size is taken then. When both are known they must agree.
   const YAML::Node size_node = root["image_size"];
-  if (!size_node) return fail(fmt::format("{}: key 'image_size' is missing", where));
-  int wh[2] = {0, 0};
-  if (!size_node.IsSequence() || size_node.size() != 2 ||
-      !YAML::convert<int>::decode(size_node[0], wh[0]) ||
-      !YAML::convert<int>::decode(size_node[1], wh[1])) {
-    return fail(
-        fmt::format("{}: key 'image_size': expected [width, height] as two integers", where));
+  cv::Size size = data_size;
+  if (size_node) {
+    int wh[2] = {0, 0};
+    if (!size_node.IsSequence() || size_node.size() != 2 ||
+        !YAML::convert<int>::decode(size_node[0], wh[0]) ||
+        !YAML::convert<int>::decode(size_node[1], wh[1])) {
+      return fail(
+          fmt::format("{}: key 'image_size': expected [width, height] as two integers", where));
+    }
+    size = cv::Size(wh[0], wh[1]);
+    if (!data_size.empty() && data_size != size) {
+      return fail(fmt::format(
+          "{}: key 'image_size': the calibration is for {}x{} images, {} {}x{}: a calibration "
+          "of another camera mode or a resized video (calibrate at this size)",
+          where, size.width, size.height, data_name.empty() ? "the images are" : data_name + " is",
+          data_size.width, data_size.height));
+    }
+  } else if (data_size.empty()) {
+    return fail(fmt::format(
+        "{}: key 'image_size' is missing, and there are no images here to take the size from",
+        where));
   }
-  const cv::Size size(wh[0], wh[1]);
 
   StereoRig rig;
   auto left = readCamera(root, where, "M1", "D1", size);
@@ -330,27 +353,31 @@ Result<StereoRig> readRigKeys(const YAML::Node& root, const std::string& where) 
   }
   rig.t = cv::Vec3d(t->ptr<double>());
 
-  const YAML::Node rms = root["rms"];
-  if (!rms) return fail(fmt::format("{}: key 'rms' is missing", where));
-  const auto rms_value = scalarNumber(rms);
-  if (!rms_value) return fail(fmt::format("{}: key 'rms': expected a number", where));
-  rig.rms = *rms_value;
+  // rms is the calibration's report, not needed to track: optional (0: not given).
+  if (const YAML::Node rms = root["rms"]; rms) {
+    const auto rms_value = scalarNumber(rms);
+    if (!rms_value) return fail(fmt::format("{}: key 'rms': expected a number", where));
+    rig.rms = *rms_value;
+  }
   return rig;
 }
 
 }  // namespace
 
-Result<StereoRig> loadRig(const std::filesystem::path& path) {
+namespace {
+
+// A small YAML file's text, its size bounded (kMaxRigFileBytes) and one document only.
+Result<std::string> readYamlText(const std::filesystem::path& path, const char* what) {
   const std::string where = path.string();
   std::error_code ec;
   if (!std::filesystem::is_regular_file(path, ec)) {
-    return fail(fmt::format("{}: rig file not found or not a regular file", where));
+    return fail(fmt::format("{}: {} not found or not a regular file", where, what));
   }
   const auto bytes = std::filesystem::file_size(path, ec);
   if (ec) return fail(fmt::format("{}: cannot read: {}", where, ec.message()));
   if (bytes > kMaxRigFileBytes) {
     return fail(
-        fmt::format("{}: {} bytes is not a rig file (at most {})", where, bytes, kMaxRigFileBytes));
+        fmt::format("{}: {} bytes is not a {} (at most {})", where, bytes, what, kMaxRigFileBytes));
   }
   std::string text;
   {
@@ -359,26 +386,189 @@ Result<StereoRig> loadRig(const std::filesystem::path& path) {
     if (!in.good() && !in.eof()) return fail(fmt::format("{}: cannot read", where));
   }
   if (text.size() > kMaxRigFileBytes) {
-    return fail(fmt::format("{}: more than {} bytes: not a rig file", where, kMaxRigFileBytes));
+    return fail(fmt::format("{}: more than {} bytes: not a {}", where, kMaxRigFileBytes, what));
   }
-  // Parsed with yaml-cpp (its depth guard and OSS-Fuzz history), not OpenCV's FileStorage: that
-  // parser looped forever on 24-byte files and threw std::length_error on others (fuzz_rig).
-  // The files are the ones OpenCV writes (saveRig) and reads, keys of its stereo_calib sample.
-  Result<StereoRig> rig = fail("");
+  return text;
+}
+
+// Parses text with yaml-cpp and hands the root to read; YAML errors name the file and line.
+template <typename T, typename Read>
+Result<T> parseYaml(const std::string& text, const std::string& where, const char* what,
+                    Read&& read) {
   try {
     // A second document is refused rather than silently left unread. Counted with a parser that
     // stops at two: YAML::LoadAll never returns on some inputs (fuzz_rig: "%YAML:1.0\n,--\n..."
     // makes yaml-cpp 0.7 yield empty documents without end).
     if (countDocuments(text, 2) > 1) {
-      return fail(fmt::format("{}: more than one YAML document: a rig file is one", where));
+      return fail(fmt::format("{}: more than one YAML document: a {} is one", where, what));
     }
-    rig = readRigKeys(YAML::Load(text), where);
+    return read(YAML::Load(text));
   } catch (const YAML::Exception& e) {
-    return fail(fmt::format("{}:{}: not valid OpenCV YAML (truncated or malformed): {}", where,
-                            e.mark.line + 1, e.msg));
+    return fail(fmt::format("{}:{}: not valid {} (truncated or malformed): {}", where,
+                            e.mark.line + 1,
+                            std::string_view(what) == "rig file" ? "OpenCV YAML" : "YAML", e.msg));
   }
+}
+
+}  // namespace
+
+Result<StereoRig> loadRig(const std::filesystem::path& path, cv::Size data_size,
+                          const std::string& data_name) {
+  const std::string where = path.string();
+  auto text = readYamlText(path, "rig file");
+  if (!text) return std::unexpected(text.error());
+  // Parsed with yaml-cpp (its depth guard and OSS-Fuzz history), not OpenCV's FileStorage: that
+  // parser looped forever on 24-byte files and threw std::length_error on others (fuzz_rig).
+  // The files are the ones OpenCV writes (saveRig) and reads, keys of its stereo_calib sample.
+  auto rig = parseYaml<StereoRig>(*text, where, "rig file", [&](const YAML::Node& root) {
+    return readRigKeys(root, where, data_size, data_name);
+  });
   if (!rig) return rig;
   if (auto ok = validateRig(*rig, where); !ok) return std::unexpected(ok.error());
+  return rig;
+}
+
+Result<StereoRig> rectifiedRig(double focal_px, cv::Point2d principal, double baseline_mm,
+                               cv::Size size, const std::string& where) {
+  if (size.empty())
+    return fail(fmt::format("{}: the image size is unknown (no images to take it from)", where));
+  StereoRig rig;
+  const cv::Matx33d k(focal_px, 0, principal.x, 0, focal_px, principal.y, 0, 0, 1);
+  const std::array<double, 5> none{};
+  rig.left = CameraModel(k, none.data(), 5, size);
+  rig.right = rig.left;
+  rig.t = cv::Vec3d(-baseline_mm, 0.0, 0.0);
+  if (auto ok = validateRig(rig, where); !ok) return std::unexpected(ok.error());
+  return rig;
+}
+
+Result<StereoRig> parseRectified(const std::string& text, cv::Size size) {
+  const std::string where = fmt::format("--rectified {}", text);
+  std::array<double, 4> v{};
+  size_t at = 0;
+  for (size_t k = 0; k < v.size(); ++k) {
+    const size_t comma = text.find(',', at);
+    const std::string field =
+        text.substr(at, comma == std::string::npos ? std::string::npos : comma - at);
+    char* end = nullptr;
+    v[k] = std::strtod(field.c_str(), &end);
+    if (field.empty() || end != field.c_str() + field.size() || !std::isfinite(v[k]) ||
+        (comma == std::string::npos) != (k + 1 == v.size())) {
+      return fail(fmt::format(
+          "{}: expected four numbers f,cx,cy,baseline_mm (focal length and principal point in "
+          "px of the rectified images, baseline in mm)",
+          where));
+    }
+    at = comma + 1;
+  }
+  return rectifiedRig(v[0], {v[1], v[2]}, v[3], size, where);
+}
+
+namespace {
+
+// One camera of a ROS camera_info YAML file (camera_calibration_parsers' layout): the raw
+// camera (K, D), its rectification rotation R and the rectified projection P.
+struct CameraInfo {
+  cv::Size size;
+  cv::Matx33d k, r;
+  cv::Matx34d p;
+  std::vector<double> d;
+};
+
+Result<CameraInfo> readCameraInfo(const YAML::Node& root, const std::string& where) {
+  if (!root.IsMap())
+    return fail(fmt::format("{}: not a ROS camera_info file (the top level is not a map)", where));
+  CameraInfo info;
+  int wh[2] = {0, 0};
+  for (int k = 0; k < 2; ++k) {
+    const char* key = k == 0 ? "image_width" : "image_height";
+    const YAML::Node n = root[key];
+    if (!n || !n.IsScalar() || !YAML::convert<int>::decode(n, wh[k]))
+      return fail(fmt::format("{}: key '{}' is missing or not an integer", where, key));
+  }
+  info.size = cv::Size(wh[0], wh[1]);
+  const YAML::Node model = root["distortion_model"];
+  const std::string m = model && model.IsScalar() ? model.Scalar() : std::string("plumb_bob");
+  if (m != "plumb_bob" && m != "rational_polynomial") {
+    return fail(fmt::format(
+        "{}: key 'distortion_model': '{}' is not supported (plumb_bob or rational_polynomial)",
+        where, m));
+  }
+  auto k = readMatrix(root, where, "camera_matrix", false);
+  if (!k) return std::unexpected(k.error());
+  auto d = readMatrix(root, where, "distortion_coefficients", false);
+  if (!d) return std::unexpected(d.error());
+  auto r = readMatrix(root, where, "rectification_matrix", false);
+  if (!r) return std::unexpected(r.error());
+  auto p = readMatrix(root, where, "projection_matrix", false);
+  if (!p) return std::unexpected(p.error());
+  if (k->total() != 9 || r->total() != 9 || p->total() != 12) {
+    return fail(fmt::format(
+        "{}: camera_matrix and rectification_matrix must be 3x3, projection_matrix 3x4", where));
+  }
+  info.k = cv::Matx33d(k->ptr<double>());
+  info.r = cv::Matx33d(r->ptr<double>());
+  info.p = cv::Matx34d(p->ptr<double>());
+  info.d.assign(d->ptr<double>(), d->ptr<double>() + d->total());
+  // ROS writes an all-zero D for no distortion, sometimes shorter than five.
+  if (info.d.size() < 4) info.d.resize(5, 0.0);
+  if (info.d.size() != 4 && info.d.size() != 5 && info.d.size() != 8) {
+    return fail(fmt::format("{}: key 'distortion_coefficients': {} coefficients (4, 5 or 8)", where,
+                            info.d.size()));
+  }
+  return info;
+}
+
+}  // namespace
+
+Result<StereoRig> loadCameraInfoPair(const std::filesystem::path& left_path,
+                                     const std::filesystem::path& right_path, cv::Size data_size,
+                                     const std::string& data_name) {
+  CameraInfo info[2];
+  const std::filesystem::path paths[2] = {left_path, right_path};
+  for (int c = 0; c < 2; ++c) {
+    const std::string where = paths[c].string();
+    auto text = readYamlText(paths[c], "camera_info file");
+    if (!text) return std::unexpected(text.error());
+    auto one = parseYaml<CameraInfo>(*text, where, "camera_info file", [&](const YAML::Node& root) {
+      return readCameraInfo(root, where);
+    });
+    if (!one) return std::unexpected(one.error());
+    info[c] = *one;
+    if (!data_size.empty() && info[c].size != data_size) {
+      return fail(fmt::format(
+          "{}: image_width x image_height {}x{}, {} {}x{}: another camera mode or a resized video",
+          where, info[c].size.width, info[c].size.height,
+          data_name.empty() ? "the images are" : data_name + " is", data_size.width,
+          data_size.height));
+    }
+  }
+  const std::string where = fmt::format("{} + {}", left_path.string(), right_path.string());
+  if (info[0].size != info[1].size)
+    return fail(fmt::format("{}: the two cameras' image sizes differ", where));
+  // The rectified frames: x_rect = R_c x_c; the right's rectified centre sits at
+  // (P(0,3)/P(0,0), P(1,3)/P(1,1), 0) relative to the left's (P's Tx = -fx' B).
+  const cv::Matx34d& pr = info[1].p;
+  if (!(pr(0, 0) > 0.0) || !(pr(1, 1) > 0.0))
+    return fail(
+        fmt::format("{}: key 'projection_matrix': focal length not positive", right_path.string()));
+  const cv::Vec3d t_rect(pr(0, 3) / pr(0, 0), pr(1, 3) / pr(1, 1), 0.0);
+  if (!(cv::norm(t_rect) > 0.0)) {
+    return fail(fmt::format(
+        "{}: key 'projection_matrix': P[0][3] (Tx = -fx * baseline) is zero: this is a left or "
+        "monocular camera's file, not the right camera of a stereo pair",
+        right_path.string()));
+  }
+  StereoRig rig;
+  rig.left =
+      CameraModel(info[0].k, info[0].d.data(), static_cast<int>(info[0].d.size()), info[0].size);
+  rig.right =
+      CameraModel(info[1].k, info[1].d.data(), static_cast<int>(info[1].d.size()), info[1].size);
+  // x_r = R2^T (R1 x_l + t_rect): R = R2^T R1, T = R2^T t_rect. ROS's lengths are metres
+  // (REP 103; camera_calibration's --square is in metres): the rig's are millimetres.
+  rig.r = info[1].r.t() * info[0].r;
+  rig.t = info[1].r.t() * (t_rect * 1000.0);
+  if (auto ok = validateRig(rig, where); !ok) return std::unexpected(ok.error());
   return rig;
 }
 

@@ -59,6 +59,7 @@ Result<void> TrackingSession::checkRoi(const StereoRig& rig, const Roi& roi,
   const cv::Rect frame(0, 0, size.width, size.height);
   constexpr int kMin = 2 * kAffineSide;
   for (const auto& [name, r] : {std::pair{"left", roi.left}, std::pair{"right", roi.right}}) {
+    if (r == cv::Rect() && name[0] == 'r') continue;  // found in the pair
     if ((r & frame) != r || r.width <= 0 || r.height <= 0) {
       return fail(fmt::format("{} ROI {}: not inside the {}x{} image", name, roiText(r), size.width,
                               size.height));
@@ -69,6 +70,7 @@ Result<void> TrackingSession::checkRoi(const StereoRig& rig, const Roi& roi,
                       name, roiText(r), kAffineSide, kAffineSide, kMin));
     }
   }
+  if (roi.right == cv::Rect()) return {};  // the tolerance is found with the right ROI
   if (!(depth_tolerance_mm > 0.0 && depth_tolerance_mm <= 500.0))
     return fail(fmt::format("depth tolerance {} mm: must be in (0, 500]", depth_tolerance_mm));
   return {};
@@ -212,8 +214,27 @@ void TrackingSession::markReference() noexcept {
 
 bool TrackingSession::detect(const cv::Mat& left, const cv::Mat& right, bool redetection) {
   ++attempts_;
+  Roi roi = config_.roi;
+  double tolerance = config_.depth_tolerance_mm;
+  if (!redetection && roi.right == cv::Rect()) {
+    auto found = findStereoRange(rig_, left, right, roi.left, config_.search);
+    if (!found) {
+      setReason(fmt::format("{}; detection is tried again every {:g} s", found.error().message,
+                            config_.retry_interval_s));
+      return false;
+    }
+    range_ = *found;
+    ++range_serial_;
+    roi.right = found->right;
+    tolerance = found->tolerance_mm;
+    if (auto usable = checkRoi(rig_, roi, tolerance); !usable) {
+      setReason(fmt::format("left ROI {}: {} ({})", roiText(roi.left), usable.error().message,
+                            found->summary()));
+      return false;
+    }
+  }
   auto ok = redetection ? tracker_.redetect(left, right)
-                        : tracker_.initialize(left, right, config_.roi, config_.depth_tolerance_mm);
+                        : tracker_.initialize(left, right, roi, tolerance);
   if (ok && *ok > 0) {
     setReason("");
     return true;
@@ -229,8 +250,7 @@ bool TrackingSession::detect(const cv::Mat& left, const cv::Mat& right, bool red
   std::string gates;
   for (const auto& [g, n] : by_gate)
     gates += fmt::format("{}{} {}", gates.empty() ? "" : ", ", n, g);
-  const std::string where =
-      fmt::format("ROI {} (right {})", roiText(config_.roi.left), roiText(config_.roi.right));
+  const std::string where = fmt::format("ROI {} (right {})", roiText(roi.left), roiText(roi.right));
   setReason(cands.empty()
                 ? fmt::format("{}: no corner found in the left ROI (no texture there, or too "
                               "small); detection is tried again every {:g} s",

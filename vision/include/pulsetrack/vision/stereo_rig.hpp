@@ -78,7 +78,26 @@ inline constexpr size_t kMaxRigFileBytes = 1 << 20;  // a rig file is ~2 KB
 // nesting itself (its depth guard); the file's size is bounded here (kMaxRigFileBytes), each
 // matrix's rows and cols as it is read, and every value after (validateRig); each error names
 // the file, and the key or line.
-[[nodiscard]] Result<StereoRig> loadRig(const std::filesystem::path& path);
+// Files as calibration tools write them: matrices float or double, T 3x1 or 1x3, `rms`
+// optional (0 when absent), `image_size` optional when `data_size` (the images' size, named
+// `data_name` in messages) is given; when both are, they must agree (a named error).
+[[nodiscard]] Result<StereoRig> loadRig(const std::filesystem::path& path, cv::Size data_size = {},
+                                        const std::string& data_name = {});
+// A rectified pair known only by its focal length and principal point (px, both views) and
+// baseline (mm), for `size` images; `where` names the source in messages.
+[[nodiscard]] Result<StereoRig> rectifiedRig(double focal_px, cv::Point2d principal,
+                                             double baseline_mm, cv::Size size,
+                                             const std::string& where);
+// The same from "f,cx,cy,baseline_mm" (the --rectified option).
+[[nodiscard]] Result<StereoRig> parseRectified(const std::string& text, cv::Size size);
+// Two ROS camera_info YAML files (camera_calibration_parsers' layout: image_width,
+// image_height, camera_matrix, distortion_model, distortion_coefficients, rectification_matrix,
+// projection_matrix) of a stereo pair: the raw cameras from K and D, the extrinsics from the
+// rectification rotations and the right P's Tx = -fx * baseline (metres, REP 103).
+[[nodiscard]] Result<StereoRig> loadCameraInfoPair(const std::filesystem::path& left,
+                                                   const std::filesystem::path& right,
+                                                   cv::Size data_size = {},
+                                                   const std::string& data_name = {});
 [[nodiscard]] Result<void> saveRig(const StereoRig& rig, const std::filesystem::path& path);
 
 }  // namespace pulsetrack::vision

@@ -43,14 +43,18 @@
 #include "pulsetrack/vision/error.hpp"
 #include "pulsetrack/vision/motion_predictor.hpp"
 #include "pulsetrack/vision/stereo_rig.hpp"
+#include "pulsetrack/vision/stereo_search.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
 
 namespace pulsetrack::vision {
 
 struct SessionConfig {
   TrackerConfig tracker;
+  // roi.right empty: the right ROI and the depth tolerance are found in the pair at detection
+  // (findStereoRange over `search`'s depth range); depth_tolerance_mm is then not used.
   Roi roi;
   double depth_tolerance_mm = 20.0;
+  StereoSearchConfig search;
   double retry_interval_s = 1.0;    // between detection attempts that found nothing
   double velocity_window_s = 0.25;  // the velocity's least-squares window
   PredictionConfig prediction;      // the displacement at t + horizon (MotionPredictor)
@@ -97,7 +101,8 @@ class TrackingSession {
   TrackingSession(const StereoRig& rig, const SessionConfig& config);
 
   // Whether an ROI pair can be tracked in the rig's images: inside them, at least two templates
-  // on each side, a positive depth tolerance. The error names the ROI and what is wrong.
+  // on each side, a positive depth tolerance. The error names the ROI and what is wrong. An
+  // empty right ROI passes, whatever the tolerance (both are found in the pair).
   static Result<void> checkRoi(const StereoRig& rig, const Roi& roi, double depth_tolerance_mm);
   // The right ROI that sees what `left` sees at depth_mm +- tolerance_mm (along the left
   // camera's axis): the left ROI's edge, back-projected to both depths and projected into the
@@ -129,6 +134,10 @@ class TrackingSession {
   [[nodiscard]] const StereoTracker& tracker() const noexcept { return tracker_; }
   [[nodiscard]] int redetections() const noexcept { return redetections_; }
   [[nodiscard]] int detectionAttempts() const noexcept { return attempts_; }
+  // Where the left ROI's surface was found (a left ROI only): valid after a detection that
+  // searched, range_serial() bumped each time.
+  [[nodiscard]] const StereoRange& stereoRange() const noexcept { return range_; }
+  [[nodiscard]] uint64_t rangeSerial() const noexcept { return range_serial_; }
 
  private:
   void setReason(std::string_view text) noexcept;
@@ -145,6 +154,8 @@ class TrackingSession {
   bool have_attempt_ = false;
   int64_t last_attempt_ns_ = 0;
   int attempts_ = 0, redetections_ = 0;
+  StereoRange range_;
+  uint64_t range_serial_ = 0;
   uint32_t detections_ = 0;
   std::array<char, 512> reason_{};
   size_t reason_len_ = 0;

@@ -1,0 +1,59 @@
+// Real surgical stereo video through the CLI, as a research team has it: a real endoscope's
+// side-by-side H.264 video with the calibration file exactly as shipped (SurgT: no image_size,
+// no rms), a left ROI only. The right ROI, the depth range and the epipolar residual come from
+// the data; the tracker must hold the surface in every pair.
+
+#include <gtest/gtest.h>
+
+#include <map>
+#include <regex>
+
+#include "pulsetrack/record/track_csv.hpp"
+#include "test_util.hpp"
+
+namespace pulsetrack {
+namespace {
+
+TEST(RealVideo, EndoscopeSideBySideWithItsOwnCalibrationAndALeftRoiOnly) {
+  const auto dir = data::shared("surgt-labelling-sample");
+  PULSETRACK_SKIP_WITHOUT_DATA(dir);
+  test::TempDir out;
+  auto r = test::run(test::cli() + " track --rig " + (dir / "rig.yaml").string() + " --video " +
+                     (dir / "video.mp4").string() +
+                     " --layout sbs --roi-left 400,300,500,400 --out " + (out / "t.csv"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  std::cerr << r.output;
+  // What was found is said: the disparity, the depth and the right ROI.
+  EXPECT_TRUE(
+      std::regex_search(r.output, std::regex("stereo search +disparity -?[0-9]+ to -?[0-9]+ "
+                                             "px, depth [0-9.]+ to [0-9.]+ mm")))
+      << r.output;
+  auto rows = record::readTrackCsv(out / "t.csv");
+  ASSERT_TRUE(rows) << rows.error().message;
+  std::map<long, int> ok;
+  for (const auto& row : *rows)
+    if (row.status == "ok") ++ok[row.frame];
+  ASSERT_EQ(ok.size(), 10U);  // every one of the 10 pairs
+  for (const auto& [frame, n] : ok) EXPECT_GE(n, 90) << "pair " << frame;
+
+  // The same video with another camera's calibration (the heart's, 360x288) is a named error.
+  r = test::run(test::cli() + " track --rig " +
+                (data::shared("hamlyn-invivo-tpsnet") / "rig.yaml").string() + " --video " +
+                (dir / "video.mp4").string() + " --layout sbs --roi-left 400,300,500,400 --out " +
+                (out / "u.csv"));
+  if (data::absent(data::shared("hamlyn-invivo-tpsnet")).empty()) {
+    EXPECT_EQ(r.exit_code, 1);
+    EXPECT_NE(r.output.find("key 'image_size': the calibration is for 360x288 images, each view "
+                            "of "),
+              std::string::npos)
+        << r.output;
+  }
+  r = test::run(test::cli() + " track --camera-info " + (dir / "rig.yaml").string() + "," +
+                (dir / "rig.yaml").string() + " --video " + (dir / "video.mp4").string() +
+                " --layout sbs --roi-left 400,300,500,400 --out " + (out / "v.csv"));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("rig.yaml: key 'image_width' is missing"), std::string::npos) << r.output;
+}
+
+}  // namespace
+}  // namespace pulsetrack

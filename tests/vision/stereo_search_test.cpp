@@ -1,0 +1,82 @@
+// The right ROI from a left ROI alone (findStereoRange), on a real in-vivo pair (the Hamlyn
+// beating heart, rectified, 360x288), and a named error where nothing can be matched (the
+// real endoscope's side-by-side video: tests/tools/real_video_cli_test.cpp).
+
+#include "pulsetrack/vision/stereo_search.hpp"
+
+#include <gtest/gtest.h>
+
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "test_util.hpp"
+
+namespace pulsetrack::vision {
+namespace {
+
+TEST(StereoSearch, FindsTheBeatingHeartInTheRightView) {
+  const auto dir = data::shared("hamlyn-invivo-tpsnet");
+  PULSETRACK_SKIP_WITHOUT_DATA(dir);
+  auto rig = loadRig(dir / "rig.yaml");
+  ASSERT_TRUE(rig) << rig.error().message;
+  const cv::Mat left = cv::imread((dir / "left_0001.png").string(), cv::IMREAD_GRAYSCALE);
+  const cv::Mat right = cv::imread((dir / "right_0001.png").string(), cv::IMREAD_GRAYSCALE);
+  ASSERT_FALSE(left.empty());
+  const cv::Rect roi(120, 60, 200, 180);
+  auto found = findStereoRange(*rig, left, right, roi);
+  ASSERT_TRUE(found) << found.error().message;
+  std::cerr << "hamlyn pair 1: " << found->summary() << "\n";
+  // Plain OpenCV NCC on this ROI (the figures): disparity 74-102 px, rows off by 0 or
+  // +1 px; well over half the textured patches match.
+  EXPECT_GE(found->matched, 50);
+  EXPECT_GE(found->disparity_lo_px, 70.0);
+  EXPECT_LE(found->disparity_hi_px, 105.0);
+  EXPECT_GE(found->vertical_px, 0.0);
+  EXPECT_LE(found->vertical_px, 1.0);
+  // Z = f B / d with the assumed rig: 579 px x 5.5 mm over 74-102 px.
+  EXPECT_GT(found->depth_mm, 579.05693 * 5.507 / 102.0);
+  EXPECT_LT(found->depth_mm, 579.05693 * 5.507 / 74.0);
+  // The right ROI is the left one shifted by the disparity, same rows.
+  EXPECT_NEAR(found->right.y, roi.y, 2);
+  EXPECT_NEAR(roi.x - found->right.x, 0.5 * (found->disparity_lo_px + found->disparity_hi_px), 12);
+  EXPECT_GT(found->tolerance_mm, found->depth_hi_mm - found->depth_mm);
+  EXPECT_NE(found->summary().find("disparity"), std::string::npos);
+
+  // The same pair searched over a depth range the heart is not in: a named error.
+  StereoSearchConfig far;
+  far.near_mm = 200.0;
+  far.far_mm = 1000.0;
+  auto none = findStereoRange(*rig, left, right, roi, far);
+  ASSERT_FALSE(none);
+  EXPECT_NE(none.error().message.find("left ROI 120,60,200,180: nothing matchable"),
+            std::string::npos)
+      << none.error().message;
+  EXPECT_NE(none.error().message.find("within 200-1000 mm"), std::string::npos)
+      << none.error().message;
+}
+
+TEST(StereoSearch, AFlatOrGlaringRoiSaysWhy) {
+  auto rig = parseRectified("579,180,144,5.5", {360, 288});
+  ASSERT_TRUE(rig);
+  cv::Mat flat(288, 360, CV_8UC1, cv::Scalar(90));
+  auto found = findStereoRange(*rig, flat, flat, cv::Rect(100, 60, 200, 180));
+  ASSERT_FALSE(found);
+  EXPECT_NE(found.error().message.find("are flat (no texture)"), std::string::npos)
+      << found.error().message;
+  cv::Mat glare(288, 360, CV_8UC1, cv::Scalar(255));
+  found = findStereoRange(*rig, glare, glare, cv::Rect(100, 60, 200, 180));
+  ASSERT_FALSE(found);
+  EXPECT_NE(found.error().message.find("100 on highlights"), std::string::npos)
+      << found.error().message;
+  EXPECT_FALSE(findStereoRange(*rig, flat, flat, cv::Rect(300, 60, 200, 180)));
+  EXPECT_FALSE(parseDepthRange("50"));
+  EXPECT_FALSE(parseDepthRange("100,50"));
+  EXPECT_FALSE(parseDepthRange("0,50"));
+  auto range = parseDepthRange("30,400");
+  ASSERT_TRUE(range);
+  EXPECT_EQ(range->near_mm, 30.0);
+  EXPECT_EQ(range->far_mm, 400.0);
+}
+
+}  // namespace
+}  // namespace pulsetrack::vision
