@@ -140,6 +140,32 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
       camera(*lt, file, "source.left", c.left_camera, c.left_libcamera_id, error);
     if (const toml::table* rtab = s.table("right"))
       camera(*rtab, file, "source.right", c.right_camera, c.right_libcamera_id, error);
+    const std::string layout = s.string("layout", "two", {"two", "sbs", "tb"});
+    c.layout = layout == "sbs"  ? drivers::StereoLayout::kSideBySide
+               : layout == "tb" ? drivers::StereoLayout::kTopBottom
+                                : drivers::StereoLayout::kTwoCameras;
+    c.device_camera.device = "/dev/video0";
+    c.device_camera.width = 0;  // the rig's
+    c.device_camera.height = 0;
+    if (const toml::table* dt = s.table("device")) {
+      std::string unused;
+      camera(*dt, file, "source.device", c.device_camera, unused, error);
+    }
+    const bool one_device = c.layout != drivers::StereoLayout::kTwoCameras;
+    if (one_device && c.source != SourceKind::kV4l2 && error.empty())
+      error = fmt::format(
+          "{}: source.layout = \"{}\" (one device carrying both views) is for kind = \"v4l2\"",
+          file, layout);
+    if (one_device && (s.table("left") != nullptr || s.table("right") != nullptr) && error.empty())
+      error = fmt::format(
+          "{}: source.layout = \"{}\": one device carries both views: describe it in "
+          "[source.device], not [source.left] / [source.right]",
+          file, layout);
+    if (!one_device && s.table("device") != nullptr && error.empty())
+      error = fmt::format(
+          "{}: [source.device] is for one device carrying both views (layout = \"sbs\" or "
+          "\"tb\"); two cameras are [source.left] and [source.right]",
+          file);
     const bool hardware = c.source == SourceKind::kV4l2 || c.source == SourceKind::kLibcamera;
     if (hardware && c.rig.empty() && error.empty())
       error = fmt::format("{}: source.rig (the rig's calibration) is required with kind = \"{}\"",
@@ -192,6 +218,11 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     c.trigger_serial = s.string("serial", "");
     c.trigger_pulse_us = s.integer("pulse_width_us", 100, 1, 100000);
     s.finish();
+    if (c.trigger_box && c.layout != drivers::StereoLayout::kTwoCameras && error.empty())
+      error = fmt::format(
+          "{}: [trigger] kind = \"box\" with one device carrying both views (source.layout): "
+          "its views are exposed together, there is nothing to trigger",
+          file);
   }
   if (const toml::table* t = r.table("recorder")) {
     TableReader s(*t, file, "recorder", &error);

@@ -85,10 +85,30 @@ int run(int argc, char** argv) {
     source = drivers::makeSimSource(*scene, *rig, config->fps, config->loop, config->sim_faults);
   } else if (config->source == daemon::SourceKind::kV4l2 ||
              config->source == daemon::SourceKind::kLibcamera) {
-    auto rig = vision::loadRig(config->rig);
+    // One device carrying both views: a calibration without image_size takes the views' size
+    // from the device's frame, when that is set.
+    const bool one_device = config->source == daemon::SourceKind::kV4l2 &&
+                            config->layout != drivers::StereoLayout::kTwoCameras;
+    const bool sbs = config->layout == drivers::StereoLayout::kSideBySide;
+    drivers::V4l2CameraConfig device = config->device_camera;
+    cv::Size view;
+    if (one_device && device.width > 0 && device.height > 0)
+      view = sbs ? cv::Size(device.width / 2, device.height)
+                 : cv::Size(device.width, device.height / 2);
+    auto rig = vision::loadRig(
+        config->rig, view,
+        view.empty() ? std::string() : fmt::format("each view of {}'s frame", device.device));
     if (!rig) {
-      log_config.error("{}", rig.error().message);
+      log_config.error("{}{}", rig.error().message,
+                       one_device && view.empty()
+                           ? " (give the device's frame size: [source.device] width and height)"
+                           : "");
       return 1;
+    }
+    if (one_device && (device.width == 0 || device.height == 0)) {
+      const cv::Size size = rig->left.imageSize();
+      device.width = sbs ? 2 * size.width : size.width;
+      device.height = sbs ? size.height : 2 * size.height;
     }
     if (config->trigger_box && !check) {
       auto hid = drivers::openHidDevice(config->trigger_vendor, config->trigger_product,
@@ -102,8 +122,9 @@ int run(int argc, char** argv) {
     }
     if (config->source == daemon::SourceKind::kV4l2) {
       drivers::V4l2StereoConfig v;
-      v.left = config->left_camera;
+      v.left = one_device ? device : config->left_camera;
       v.right = config->right_camera;
+      v.layout = config->layout;
       v.fps = config->fps;
       source = drivers::makeV4l2Source(drivers::systemV4l2Io(), v, *rig, trigger.get());
     } else {

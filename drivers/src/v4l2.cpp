@@ -207,18 +207,20 @@ V4l2Camera::Dequeue V4l2Camera::dequeue(int& index, CameraStamp& stamp) {
   return Dequeue::kFrame;
 }
 
-void V4l2Camera::convert(int index, cv::Mat& out) const {
+void V4l2Camera::convert(int index, cv::Mat& out, int x0, int y0) const {
   const auto* data = static_cast<const uint8_t*>(buffers_[static_cast<size_t>(index)].data);
-  for (int y = 0; y < config_.height; ++y) {
-    const uint8_t* row = data + static_cast<size_t>(y) * bytes_per_line_;
+  const auto x = static_cast<size_t>(x0);
+  for (int y = 0; y < out.rows; ++y) {
+    const uint8_t* row = data + static_cast<size_t>(y + y0) * bytes_per_line_;
     uint8_t* dst = out.ptr<uint8_t>(y);
     if (fourcc_ == V4L2_PIX_FMT_GREY) {
-      std::memcpy(dst, row, static_cast<size_t>(config_.width));
+      std::memcpy(dst, row + x, static_cast<size_t>(out.cols));
     } else if (fourcc_ == V4L2_PIX_FMT_Y16) {
-      for (int x = 0; x < config_.width; ++x)
-        dst[x] = row[2 * x + 1];  // little-endian: the high byte
+      for (int c = 0; c < out.cols; ++c)
+        dst[c] = row[2 * (x + static_cast<size_t>(c)) + 1];  // little-endian: the high byte
     } else {
-      for (int x = 0; x < config_.width; ++x) dst[x] = row[2 * x];  // YUYV: the Y bytes
+      for (int c = 0; c < out.cols; ++c)
+        dst[c] = row[2 * (x + static_cast<size_t>(c))];  // YUYV: the Y bytes
     }
   }
 }
@@ -361,10 +363,151 @@ class V4l2StereoSource final : public CameraSource {
   std::string fault_;
 };
 
+// One device carrying both views in each frame (side by side or top-bottom): each frame is a
+// pair, split into the caller's two images. The device's sequence numbers the pairs; its gaps
+// are frames the driver dropped.
+class V4l2SplitSource final : public CameraSource {
+ public:
+  V4l2SplitSource(V4l2Io& io, const V4l2StereoConfig& c, vision::StereoRig rig)
+      : io_(io),
+        config_(c),
+        rig_(std::move(rig)),
+        cam_(io, c.left),
+        period_ns_(static_cast<int64_t>(1e9 / c.fps)) {}
+
+  std::string name() const override {
+    return fmt::format("v4l2 {} ({})", config_.left.device, layoutName());
+  }
+  const vision::StereoRig& rig() const override { return rig_; }
+
+  vision::Result<void> start() override {
+    const cv::Size view = rig_.left.imageSize();
+    const bool sbs = config_.layout == StereoLayout::kSideBySide;
+    const cv::Size whole(sbs ? 2 * view.width : view.width, sbs ? view.height : 2 * view.height);
+    if (config_.left.width != whole.width || config_.left.height != whole.height) {
+      return vision::fail(fmt::format(
+          "{}: a {} frame of {}x{} holds two {}x{} views; the rig's cameras are {}x{} (the frame "
+          "must be {}x{})",
+          config_.left.device, layoutName(), config_.left.width, config_.left.height,
+          sbs ? config_.left.width / 2 : config_.left.width,
+          sbs ? config_.left.height : config_.left.height / 2, view.width, view.height, whole.width,
+          whole.height));
+    }
+    if (auto ok = cam_.open(); !ok) return ok;
+    last_frame_ns_ = rt::monotonicNs();
+    have_seq_ = false;
+    return {};
+  }
+
+  Next next(StereoFrame& frame, std::chrono::milliseconds timeout) override {
+    const int64_t deadline = rt::monotonicNs() + std::chrono::nanoseconds(timeout).count();
+    const int64_t silent_after = std::max<int64_t>(1'000'000'000, 5 * period_ns_);
+    for (;;) {
+      const int64_t now = rt::monotonicNs();
+      if (!cam_.isOpen()) {
+        if (now < next_reopen_ns_) return Next::kFault;
+        next_reopen_ns_ = now + int64_t{config_.reopen_ms} * 1'000'000;
+        if (auto ok = cam_.open(); !ok) {
+          fault_ = ok.error().message;
+          return Next::kFault;
+        }
+        last_frame_ns_ = now;
+        have_seq_ = false;  // a reopened device counts from 0 again
+      }
+      if (now >= deadline) return Next::kTimeout;
+      pollfd fd{cam_.fd(), POLLIN, 0};
+      const int wait_ms = static_cast<int>(std::max<int64_t>(1, (deadline - now) / 1'000'000));
+      const int r = io_.poll(&fd, 1, wait_ms);
+      if (r < 0) {
+        if (errno == EINTR) continue;
+        fault_ = fmt::format("poll: {}", std::strerror(errno));
+        return Next::kFault;
+      }
+      const int64_t t = rt::monotonicNs();
+      if (t - last_frame_ns_ > silent_after) {
+        fault_ = fmt::format("{}: no frame for {} ms (no video signal, or the cable?)",
+                             cam_.device(), (t - last_frame_ns_) / 1'000'000);
+        cam_.close();
+        return Next::kFault;
+      }
+      if ((fd.revents & (POLLERR | POLLHUP | POLLNVAL)) != 0 && (fd.revents & POLLIN) == 0) {
+        fault_ = fmt::format("{}: the device reports an error (unplugged?)", cam_.device());
+        cam_.close();
+        return Next::kFault;
+      }
+      if ((fd.revents & POLLIN) == 0) continue;
+      int index = 0;
+      CameraStamp stamp;
+      const V4l2Camera::Dequeue d = cam_.dequeue(index, stamp);
+      if (d == V4l2Camera::Dequeue::kAgain) continue;
+      if (d != V4l2Camera::Dequeue::kFrame) {
+        fault_ = cam_.lastError();
+        cam_.close();
+        return Next::kFault;
+      }
+      last_frame_ns_ = t;
+      // The pair's number: the device's sequence, continued across a reopen (whose gap is not
+      // known: one step).
+      if (have_seq_) {
+        const uint64_t step = stamp.seq > last_seq_ ? stamp.seq - last_seq_ : 1;
+        counters_.dropped += step - 1;
+        seq_ += step;
+      } else if (counters_.frames > 0) {
+        ++seq_;
+      }
+      last_seq_ = stamp.seq;
+      have_seq_ = true;
+      if (config_.layout == StereoLayout::kSideBySide) {
+        cam_.convert(index, frame.left, 0, 0);
+        cam_.convert(index, frame.right, frame.left.cols, 0);
+      } else {
+        cam_.convert(index, frame.left, 0, 0);
+        cam_.convert(index, frame.right, 0, frame.left.rows);
+      }
+      (void)cam_.requeue(index);
+      frame.trigger_seq = seq_;
+      frame.t_left_ns = stamp.t_ns;
+      frame.t_right_ns = stamp.t_ns;
+      ++counters_.frames;
+      shared_.store(counters_);
+      return Next::kFrame;
+    }
+  }
+
+  void stop() override { cam_.close(); }
+  std::string lastFault() const override { return fault_; }
+  SourceCounters counters() const override { return shared_.load(); }
+  std::string triggerState() const override {
+    return fmt::format(
+        "one device at {:g} Hz, {}: the two views are exposed together (no pairing, no trigger "
+        "box needed)",
+        config_.fps, layoutName());
+  }
+
+ private:
+  [[nodiscard]] const char* layoutName() const {
+    return config_.layout == StereoLayout::kSideBySide ? "side by side" : "top-bottom";
+  }
+
+  V4l2Io& io_;
+  V4l2StereoConfig config_;
+  vision::StereoRig rig_;
+  V4l2Camera cam_;
+  int64_t period_ns_;
+  int64_t last_frame_ns_ = 0, next_reopen_ns_ = 0;
+  bool have_seq_ = false;
+  uint64_t last_seq_ = 0, seq_ = 0;
+  SourceCounters counters_;
+  SharedCounters shared_;
+  std::string fault_;
+};
+
 }  // namespace
 
 std::unique_ptr<CameraSource> makeV4l2Source(V4l2Io& io, const V4l2StereoConfig& config,
                                              vision::StereoRig rig, TriggerBox* trigger) {
+  if (config.layout != StereoLayout::kTwoCameras)
+    return std::make_unique<V4l2SplitSource>(io, config, std::move(rig));
   return std::make_unique<V4l2StereoSource>(io, config, std::move(rig), trigger);
 }
 

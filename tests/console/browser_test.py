@@ -326,8 +326,14 @@ def main():
         set_field("w", "20")
         set_field("h", "20")
         d.find_element(By.ID, "apply-roi").click()
-        wait_until("the console's refusal of a 20x20 ROI shown",
-                   lambda: "too small" in text(d, "#roi-error"), 15)
+        # The default bound (60 s): on the shared 2-core CI machine, beside another long test,
+        # 15 s once passed without the answer (the same run alone: 2 s).
+        try:
+            wait_until("the console's refusal of a 20x20 ROI shown",
+                       lambda: "too small" in text(d, "#roi-error"))
+        except Failure as e:
+            raise Failure(f"{e}; the panel says '{text(d, '#roi-error')}', the status line "
+                          f"'{text(d, '#command-status')}'") from None
         refusal = text(d, "#roi-error")
         d.find_element(By.ID, "cancel-roi").click()
         print(f"3a. a finger-drawn ROI {got}; width 0 refused on the page; 20x20 refused by the "

@@ -55,6 +55,23 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_EQ(ns->topics.command, "rt/site/or1/pulsetrack/command");
 }
 
+TEST(DaemonConfig, OneV4l2DeviceCarryingBothViews) {
+  auto c = parseDaemonConfig(
+      "[source]\nkind = \"v4l2\"\nrig = \"rigs/scope.yaml\"\nlayout = \"sbs\"\n"
+      "[source.device]\ndevice = \"/dev/video2\"\npixel_format = \"YUYV\"\n",
+      "/etc/pulsetrack/pulsetrackd.toml");
+  ASSERT_TRUE(c) << c.error().message;
+  EXPECT_EQ(c->layout, drivers::StereoLayout::kSideBySide);
+  EXPECT_EQ(c->device_camera.device, "/dev/video2");
+  EXPECT_EQ(c->device_camera.pixel_format, "YUYV");
+  EXPECT_EQ(c->device_camera.width, 0);  // the rig's views, side by side
+  auto tb = parseDaemonConfig("[source]\nkind = \"v4l2\"\nrig = \"r.yaml\"\nlayout = \"tb\"\n",
+                              "/etc/p.toml");
+  ASSERT_TRUE(tb) << tb.error().message;
+  EXPECT_EQ(tb->layout, drivers::StereoLayout::kTopBottom);
+  EXPECT_EQ(tb->device_camera.device, "/dev/video0");
+}
+
 void expectError(const std::string& text, const std::string& needle) {
   auto c = parseDaemonConfig(text, "/etc/pulsetrack/pulsetrackd.toml");
   ASSERT_FALSE(c) << text;
@@ -157,6 +174,22 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
               "source.left.pixel_format: expected one of");
   expectError("[source.right]\nbuffers = 1\n", "pulsetrackd.toml:2: source.right.buffers");
   expectError("[trigger]\nkind = \"usb\"\n", "trigger.kind: expected one of box, none");
+  // One device carrying both views (a microscope's side-by-side output): v4l2 only, described in
+  // [source.device], no trigger box; two cameras are not described there.
+  expectError("[source]\nlayout = \"sbs\"\n",
+              "source.layout = \"sbs\" (one device carrying both views) is for kind = \"v4l2\"");
+  expectError("[source]\nkind = \"v4l2\"\nrig = \"r.yaml\"\nlayout = \"lr\"\n",
+              "source.layout: expected one of sbs, tb, two");
+  expectError(
+      "[source]\nkind = \"v4l2\"\nrig = \"r.yaml\"\nlayout = \"sbs\"\n[source.left]\n"
+      "device = \"/dev/video3\"\n",
+      "describe it in [source.device], not [source.left] / [source.right]");
+  expectError("[source]\nkind = \"v4l2\"\nrig = \"r.yaml\"\n[source.device]\nwidth = 2720\n",
+              "[source.device] is for one device carrying both views");
+  expectError(
+      "[source]\nkind = \"v4l2\"\nrig = \"r.yaml\"\nlayout = \"tb\"\n[trigger]\nkind = "
+      "\"box\"\n",
+      "[trigger] kind = \"box\" with one device carrying both views");
   expectError("[recorder]\nslots = 1\n", "recorder.slots");
   expectError("[tracker]\nmax_features = 50\nstereo_refresh = 60\n",
               "pulsetrackd.toml:3: tracker.stereo_refresh");

@@ -319,6 +319,91 @@ TEST(V4l2Source, PairsCarryTheTriggerBoxsPulseNumbers) {
 }
 
 // On a real device (vivid, or a camera) when there is one.
+// One device carrying both views (a stereo microscope's side-by-side or top-bottom output through
+// a capture card): each frame is a pair, split into the two images; the device's sequence numbers
+// the pairs and its gaps count as dropped frames; a frame of the wrong size for the rig is a
+// named error; an unplugged device is a fault and comes back.
+TEST(V4l2Source, OneDeviceSideBySideOrTopBottomIsAStereoSource) {
+  for (const StereoLayout layout : {StereoLayout::kSideBySide, StereoLayout::kTopBottom}) {
+    const bool sbs = layout == StereoLayout::kSideBySide;
+    SCOPED_TRACE(sbs ? "side by side" : "top-bottom");
+    test::FakeV4l2 io;
+    io.period_ns = 10'000'000;
+    auto& dev = io.add("/dev/video2");
+    dev.width = sbs ? 128 : 64;
+    dev.height = sbs ? 48 : 96;
+    // The left view holds the trigger number, the right one 100 more (mod 251).
+    dev.paint = [&dev, sbs](uint64_t k, uint8_t* data, uint32_t stride) {
+      for (int y = 0; y < dev.height; ++y) {
+        for (int x = 0; x < dev.width; ++x) {
+          const bool right = sbs ? x >= dev.width / 2 : y >= dev.height / 2;
+          data[static_cast<size_t>(y) * stride + static_cast<size_t>(x)] =
+              static_cast<uint8_t>((k + (right ? 100 : 0)) % 251);
+        }
+      }
+    };
+    dev.drops = [](uint64_t k) { return k % 9 == 4; };
+    V4l2StereoConfig config;
+    config.layout = layout;
+    config.left = small("/dev/video2");
+    config.left.width = dev.width;
+    config.left.height = dev.height;
+    config.fps = 100.0;
+    config.reopen_ms = 50;
+    auto rig = vision::rectifiedRig(100.0, {32, 24}, 5.0, {64, 48}, "test rig");
+    ASSERT_TRUE(rig) << rig.error().message;
+    auto source = makeV4l2Source(io, config, *rig);
+    ASSERT_TRUE(source->start());
+    EXPECT_NE(source->triggerState().find("the two views are exposed together"), std::string::npos);
+    EXPECT_NE(source->name().find("/dev/video2"), std::string::npos);
+    StereoFrame frame;
+    frame.left.create(48, 64, CV_8UC1);
+    frame.right.create(48, 64, CV_8UC1);
+    uint64_t first = 0, last = 0;
+    for (int i = 0; i < 40; ++i) {
+      ASSERT_EQ(source->next(frame, std::chrono::milliseconds(1000)), Next::kFrame)
+          << source->lastFault();
+      const int l = frame.left.at<uint8_t>(0, 0);
+      EXPECT_EQ(cv::countNonZero(frame.left != l), 0) << "a view mixes the two halves";
+      EXPECT_EQ(cv::countNonZero(frame.right != (l + 100) % 251), 0);
+      EXPECT_EQ(frame.t_left_ns, frame.t_right_ns);
+      if (i == 0) first = frame.trigger_seq;
+      EXPECT_TRUE(i == 0 || frame.trigger_seq > last);
+      last = frame.trigger_seq;
+    }
+    const SourceCounters c = source->counters();
+    EXPECT_EQ(c.frames, 40U);
+    EXPECT_EQ(c.dropped, last - first - 39);  // every gap in the sequence is a dropped frame
+    EXPECT_GE(c.dropped, 3U);
+    // Unplugged: a fault naming the device; plugged back: frames again.
+    io.unplug("/dev/video2");
+    ASSERT_EQ(source->next(frame, std::chrono::milliseconds(1000)), Next::kFault);
+    EXPECT_NE(source->lastFault().find("/dev/video2"), std::string::npos) << source->lastFault();
+    io.plug("/dev/video2");
+    Next n = Next::kFault;
+    for (int i = 0; i < 50 && n != Next::kFrame; ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+      n = source->next(frame, std::chrono::milliseconds(200));
+    }
+    ASSERT_EQ(n, Next::kFrame) << source->lastFault();
+    EXPECT_GT(frame.trigger_seq, last);
+    source->stop();
+
+    // A frame that is not two of the rig's views: named, with both sizes.
+    config.left.width = sbs ? 100 : 64;
+    config.left.height = sbs ? 48 : 90;
+    auto wrong = makeV4l2Source(io, config, *rig);
+    auto ok = wrong->start();
+    ASSERT_FALSE(ok);
+    EXPECT_NE(ok.error().message.find(sbs ? "/dev/video2: a side by side frame of 100x48 holds two "
+                                            "50x48 views; the rig's cameras are 64x48"
+                                          : "/dev/video2: a top-bottom frame of 64x90 holds two "
+                                            "64x45 views; the rig's cameras are 64x48"),
+              std::string::npos)
+        << ok.error().message;
+  }
+}
+
 TEST(V4l2Device, RealDeviceStreamsWhenPresent) {
   std::string dev;
   for (int i = 0; i < 8 && dev.empty(); ++i) {

@@ -48,6 +48,10 @@ struct DaemonConfig {
   drivers::SimFaults sim_faults;  // [source.faults]
   // v4l2: the two cameras ([source.left], [source.right]) and the rig's calibration.
   drivers::V4l2CameraConfig left_camera, right_camera;
+  // v4l2, [source] layout = "sbs" or "tb": one device carrying both views ([source.device]; its
+  // width and height 0 until set: then the rig's image size, doubled along the layout).
+  drivers::StereoLayout layout = drivers::StereoLayout::kTwoCameras;
+  drivers::V4l2CameraConfig device_camera;
   std::string left_libcamera_id, right_libcamera_id;  // libcamera: the cameras' ids
   std::filesystem::path rig;
   // [trigger]: the HID trigger box, or none (free-running cameras: a health warning).

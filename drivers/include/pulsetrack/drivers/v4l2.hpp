@@ -69,8 +69,11 @@ class V4l2Camera {
   // One filled buffer, without waiting (call after poll says readable). The buffer stays the
   // caller's until requeue(index).
   Dequeue dequeue(int& index, CameraStamp& stamp);
-  // The buffer's image as 8-bit grey into `out` (sized at open: width x height CV_8UC1).
-  void convert(int index, cv::Mat& out) const;
+  // The buffer's image as 8-bit grey into `out` (CV_8UC1): the region of out's size at (x0, y0)
+  // of the frame, which must lie inside it (the whole image, or one view of a side-by-side or
+  // top-bottom frame).
+  void convert(int index, cv::Mat& out, int x0 = 0, int y0 = 0) const;
+  [[nodiscard]] const V4l2CameraConfig& config() const { return config_; }
   bool requeue(int index);
   [[nodiscard]] const std::string& lastError() const { return error_; }
 
@@ -97,14 +100,26 @@ class V4l2Camera {
 // trigger_box.hpp); without one the source is free-running and says so in triggerState().
 // A camera that goes away (ENODEV, or no frame within the timeout) is a fault; it is reopened
 // every `reopen_ms` until it answers, and tracking resumes.
+// How the two views arrive: from two cameras, or in each frame of one device (a stereo
+// microscope's or exoscope's video output through a capture card: the views side by side, left
+// view on the left, or top-bottom, left view on top). One device needs no pairing and no
+// trigger: its two views are exposed together.
+enum class StereoLayout { kTwoCameras, kSideBySide, kTopBottom };
+
 struct V4l2StereoConfig {
+  // kTwoCameras: the two cameras. One device: `left` is it, its width and height the whole
+  // frame's (twice the rig's image width side by side, twice its height top-bottom).
   V4l2CameraConfig left, right;
+  StereoLayout layout = StereoLayout::kTwoCameras;
   double fps = 30.0;  // the trigger's rate: pairing tolerance, frame timeout
   int reopen_ms = 500;
 };
 
 class TriggerBox;  // trigger_box.hpp
 
+// The source for config.layout (one device: `trigger` must be null; its frames are numbered by
+// the device's sequence, its gaps counted as dropped). One device's frame size must be the
+// layout's of the rig's image size: start() fails naming the device and both sizes otherwise.
 std::unique_ptr<CameraSource> makeV4l2Source(V4l2Io& io, const V4l2StereoConfig& config,
                                              vision::StereoRig rig, TriggerBox* trigger = nullptr);
 
