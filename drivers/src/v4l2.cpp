@@ -235,6 +235,24 @@ bool V4l2Camera::requeue(int index) {
 
 namespace {
 
+// One device after poll(): a frame dequeued (kFrame; the buffer is the caller's until requeue),
+// nothing to take (kAgain), or a fault (kGone or kError: the device is closed and `fault` says
+// why). Both sources read their devices through it.
+V4l2Camera::Dequeue takeReady(V4l2Camera& cam, short revents, int& index, CameraStamp& stamp,
+                              std::string& fault) {
+  if ((revents & (POLLERR | POLLHUP | POLLNVAL)) != 0 && (revents & POLLIN) == 0) {
+    fault = fmt::format("{}: the device reports an error (unplugged?)", cam.device());
+    cam.close();
+    return V4l2Camera::Dequeue::kError;
+  }
+  if ((revents & POLLIN) == 0) return V4l2Camera::Dequeue::kAgain;
+  const V4l2Camera::Dequeue d = cam.dequeue(index, stamp);
+  if (d == V4l2Camera::Dequeue::kFrame || d == V4l2Camera::Dequeue::kAgain) return d;
+  fault = cam.lastError();
+  cam.close();
+  return d;
+}
+
 class V4l2StereoSource final : public CameraSource {
  public:
   V4l2StereoSource(V4l2Io& io, const V4l2StereoConfig& c, vision::StereoRig rig,
@@ -307,23 +325,12 @@ class V4l2StereoSource final : public CameraSource {
         }
       }
       for (int c = 0; c < 2; ++c) {
-        V4l2Camera& cam = *cams_[static_cast<size_t>(c)];
-        if ((fds[c].revents & (POLLERR | POLLHUP | POLLNVAL)) != 0 &&
-            (fds[c].revents & POLLIN) == 0) {
-          fault_ = fmt::format("{}: the device reports an error (unplugged?)", cam.device());
-          cam.close();
-          return Next::kFault;
-        }
-        if ((fds[c].revents & POLLIN) == 0) continue;
         int index = 0;
         CameraStamp stamp;
-        const V4l2Camera::Dequeue d = cam.dequeue(index, stamp);
+        const V4l2Camera::Dequeue d =
+            takeReady(*cams_[static_cast<size_t>(c)], fds[c].revents, index, stamp, fault_);
         if (d == V4l2Camera::Dequeue::kAgain) continue;
-        if (d != V4l2Camera::Dequeue::kFrame) {
-          fault_ = cam.lastError();
-          cam.close();
-          return Next::kFault;
-        }
+        if (d != V4l2Camera::Dequeue::kFrame) return Next::kFault;
         last_frame_ns_[static_cast<size_t>(c)] = t;
         stamp.slot = PairedFrames::slot(c, index);
         const PairEvents ev = pairs_.offer(c, stamp);
@@ -430,21 +437,11 @@ class V4l2SplitSource final : public CameraSource {
         cam_.close();
         return Next::kFault;
       }
-      if ((fd.revents & (POLLERR | POLLHUP | POLLNVAL)) != 0 && (fd.revents & POLLIN) == 0) {
-        fault_ = fmt::format("{}: the device reports an error (unplugged?)", cam_.device());
-        cam_.close();
-        return Next::kFault;
-      }
-      if ((fd.revents & POLLIN) == 0) continue;
       int index = 0;
       CameraStamp stamp;
-      const V4l2Camera::Dequeue d = cam_.dequeue(index, stamp);
+      const V4l2Camera::Dequeue d = takeReady(cam_, fd.revents, index, stamp, fault_);
       if (d == V4l2Camera::Dequeue::kAgain) continue;
-      if (d != V4l2Camera::Dequeue::kFrame) {
-        fault_ = cam_.lastError();
-        cam_.close();
-        return Next::kFault;
-      }
+      if (d != V4l2Camera::Dequeue::kFrame) return Next::kFault;
       last_frame_ns_ = t;
       // The pair's number: the device's sequence, continued across a reopen (whose gap is not
       // known: one step).
