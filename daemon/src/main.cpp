@@ -89,12 +89,10 @@ int run(int argc, char** argv) {
     // from the device's frame, when that is set.
     const bool one_device = config->source == daemon::SourceKind::kV4l2 &&
                             config->layout != drivers::StereoLayout::kTwoCameras;
-    const bool sbs = config->layout == drivers::StereoLayout::kSideBySide;
     drivers::V4l2CameraConfig device = config->device_camera;
     cv::Size view;
     if (one_device && device.width > 0 && device.height > 0)
-      view = sbs ? cv::Size(device.width / 2, device.height)
-                 : cv::Size(device.width, device.height / 2);
+      view = drivers::layoutViewSize(config->layout, {device.width, device.height});
     auto rig = vision::loadRig(
         config->rig, view,
         view.empty() ? std::string() : fmt::format("each view of {}'s frame", device.device));
@@ -106,9 +104,9 @@ int run(int argc, char** argv) {
       return 1;
     }
     if (one_device && (device.width == 0 || device.height == 0)) {
-      const cv::Size size = rig->left.imageSize();
-      device.width = sbs ? 2 * size.width : size.width;
-      device.height = sbs ? size.height : 2 * size.height;
+      const cv::Size whole = drivers::layoutFrameSize(config->layout, rig->left.imageSize());
+      device.width = whole.width;
+      device.height = whole.height;
     }
     if (config->trigger_box && !check) {
       auto hid = drivers::openHidDevice(config->trigger_vendor, config->trigger_product,

@@ -389,16 +389,15 @@ class V4l2SplitSource final : public CameraSource {
 
   vision::Result<void> start() override {
     const cv::Size view = rig_.left.imageSize();
-    const bool sbs = config_.layout == StereoLayout::kSideBySide;
-    const cv::Size whole(sbs ? 2 * view.width : view.width, sbs ? view.height : 2 * view.height);
-    if (config_.left.width != whole.width || config_.left.height != whole.height) {
+    const cv::Size whole = layoutFrameSize(config_.layout, view);
+    const cv::Size frame(config_.left.width, config_.left.height);
+    if (frame != whole) {
+      const cv::Size holds = layoutViewSize(config_.layout, frame);
       return vision::fail(fmt::format(
           "{}: a {} frame of {}x{} holds two {}x{} views; the rig's cameras are {}x{} (the frame "
           "must be {}x{})",
-          config_.left.device, layoutName(), config_.left.width, config_.left.height,
-          sbs ? config_.left.width / 2 : config_.left.width,
-          sbs ? config_.left.height : config_.left.height / 2, view.width, view.height, whole.width,
-          whole.height));
+          config_.left.device, layoutName(), frame.width, frame.height, holds.width, holds.height,
+          view.width, view.height, whole.width, whole.height));
     }
     if (auto ok = cam_.open(); !ok) return ok;
     last_frame_ns_ = rt::monotonicNs();
@@ -454,13 +453,9 @@ class V4l2SplitSource final : public CameraSource {
       }
       last_seq_ = stamp.seq;
       have_seq_ = true;
-      if (config_.layout == StereoLayout::kSideBySide) {
-        cam_.convert(index, frame.left, 0, 0);
-        cam_.convert(index, frame.right, frame.left.cols, 0);
-      } else {
-        cam_.convert(index, frame.left, 0, 0);
-        cam_.convert(index, frame.right, 0, frame.left.rows);
-      }
+      const bool sbs = config_.layout == StereoLayout::kSideBySide;
+      cam_.convert(index, frame.left, 0, 0);
+      cam_.convert(index, frame.right, sbs ? frame.left.cols : 0, sbs ? 0 : frame.left.rows);
       (void)cam_.requeue(index);
       frame.trigger_seq = seq_;
       frame.t_left_ns = stamp.t_ns;
@@ -500,6 +495,30 @@ class V4l2SplitSource final : public CameraSource {
 };
 
 }  // namespace
+
+cv::Size layoutFrameSize(StereoLayout layout, cv::Size view) noexcept {
+  switch (layout) {
+    case StereoLayout::kSideBySide:
+      return {2 * view.width, view.height};
+    case StereoLayout::kTopBottom:
+      return {view.width, 2 * view.height};
+    case StereoLayout::kTwoCameras:
+      break;
+  }
+  return view;
+}
+
+cv::Size layoutViewSize(StereoLayout layout, cv::Size frame) noexcept {
+  switch (layout) {
+    case StereoLayout::kSideBySide:
+      return {frame.width / 2, frame.height};
+    case StereoLayout::kTopBottom:
+      return {frame.width, frame.height / 2};
+    case StereoLayout::kTwoCameras:
+      break;
+  }
+  return frame;
+}
 
 std::unique_ptr<CameraSource> makeV4l2Source(V4l2Io& io, const V4l2StereoConfig& config,
                                              vision::StereoRig rig, TriggerBox* trigger) {

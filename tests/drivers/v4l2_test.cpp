@@ -324,9 +324,13 @@ TEST(V4l2Source, PairsCarryTheTriggerBoxsPulseNumbers) {
 // the pairs and its gaps count as dropped frames; a frame of the wrong size for the rig is a
 // named error; an unplugged device is a fault and comes back.
 TEST(V4l2Source, OneDeviceSideBySideOrTopBottomIsAStereoSource) {
+  EXPECT_EQ(layoutFrameSize(StereoLayout::kTwoCameras, {64, 48}), cv::Size(64, 48));
+  EXPECT_EQ(layoutViewSize(StereoLayout::kTwoCameras, {64, 48}), cv::Size(64, 48));
   for (const StereoLayout layout : {StereoLayout::kSideBySide, StereoLayout::kTopBottom}) {
     const bool sbs = layout == StereoLayout::kSideBySide;
     SCOPED_TRACE(sbs ? "side by side" : "top-bottom");
+    EXPECT_EQ(layoutFrameSize(layout, {64, 48}), cv::Size(sbs ? 128 : 64, sbs ? 48 : 96));
+    EXPECT_EQ(layoutViewSize(layout, {sbs ? 129 : 64, sbs ? 48 : 97}), cv::Size(64, 48));
     test::FakeV4l2 io;
     io.period_ns = 10'000'000;
     auto& dev = io.add("/dev/video2");

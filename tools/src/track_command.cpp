@@ -175,6 +175,7 @@ int runMatch(const MatchArgs& a) {
         c.point[1], c.point[2], vision::statusText(c.status, c.gate));
   }
   if (!out) return commandError("match", fmt::format("{}: write failed", a.out));
+  fmt::print("gates             {}\n", tracker.fittedGates().summary());
   fmt::print("{} candidates, {} ok, written to {}\n", tracker.candidates().size(), *ok, a.out);
   return 0;
 }
@@ -377,8 +378,9 @@ int runTrack(const TrackArgs& a) {
         fmt::print(stderr, "frame {}: stereo search: {}\n", frame, session.stereoRange().summary());
     }
     if (pr.detected && !a.quiet) {
-      fmt::print(stderr, "frame {}: {} features {}\n", frame, session.tracker().okCount(),
-                 initial < 0 ? "detected" : "re-detected (too few ok)");
+      fmt::print(stderr, "frame {}: {} features {}; gates {}\n", frame, session.tracker().okCount(),
+                 initial < 0 ? "detected" : "re-detected (too few ok)",
+                 session.tracker().fittedGates().summary());
     }
     if (pr.detected && initial < 0) initial = session.tracker().okCount();
     for (const vision::Feature& f : pr.features) {
@@ -450,6 +452,7 @@ int runTrack(const TrackArgs& a) {
       prediction_rows);
   if (session.rangeSerial() > 0)
     fmt::print("stereo search     {}\n", session.stereoRange().summary());
+  if (initial >= 0) fmt::print("gates             {}\n", session.tracker().fittedGates().summary());
   if (field_out) {
     auto lines = field_out->finish();
     if (!lines) return commandError("track", lines.error().message);

@@ -73,7 +73,6 @@ class V4l2Camera {
   // of the frame, which must lie inside it (the whole image, or one view of a side-by-side or
   // top-bottom frame).
   void convert(int index, cv::Mat& out, int x0 = 0, int y0 = 0) const;
-  [[nodiscard]] const V4l2CameraConfig& config() const { return config_; }
   bool requeue(int index);
   [[nodiscard]] const std::string& lastError() const { return error_; }
 
@@ -105,6 +104,11 @@ class V4l2Camera {
 // view on the left, or top-bottom, left view on top). One device needs no pairing and no
 // trigger: its two views are exposed together.
 enum class StereoLayout { kTwoCameras, kSideBySide, kTopBottom };
+// One device's whole frame for two views of `view` in `layout` (twice the width side by side,
+// twice the height top-bottom; kTwoCameras: `view`), and the view in a whole frame (the inverse,
+// an odd size rounded down).
+cv::Size layoutFrameSize(StereoLayout layout, cv::Size view) noexcept;
+cv::Size layoutViewSize(StereoLayout layout, cv::Size frame) noexcept;
 
 struct V4l2StereoConfig {
   // kTwoCameras: the two cameras. One device: `left` is it, its width and height the whole

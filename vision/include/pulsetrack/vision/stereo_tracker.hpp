@@ -152,6 +152,17 @@ struct TrackerConfig {
   // the offset; a wrong match on similar texture (0.26-0.38 px off on cortex-60s, 0.14-0.27 mm
   // of depth for good) does not share it.
   double max_epipolar_spread_px = 0.15;
+  // Detection: the two neighbour gates (max_sheen, max_epipolar_spread_px) were chosen on
+  // rendered and photographed scenes. Where one of them rejects more than a quarter of a
+  // detection round's matches, the images are not like those (the Hamlyn heart's rectified
+  // pair: the rig's own vertical offset varies by 0.4-0.5 px over the ROI, and moist tissue
+  // shines differently per view everywhere), and that gate's threshold becomes fit_sigmas
+  // robust standard deviations (1.4826 x the median absolute value) of the round's own values:
+  // never below the configured threshold, never above the bound. fittedGates() says what was
+  // used. 0: the thresholds are fixed.
+  double fit_sigmas = 3.0;
+  double max_sheen_bound = 0.06;
+  double max_epipolar_spread_bound_px = 0.6;
   double max_surface_mm = 2.0;      // distance to the fitted parabola
   double surface_mad_factor = 6.0;  // ... and at most this many MADs
   // Sub-pixel refinement after the NCC peak: affine for the stereo match (the two views
@@ -195,6 +206,20 @@ struct TrackerConfig {
 struct Roi {
   cv::Rect left;
   cv::Rect right;
+};
+
+// The neighbour gates' thresholds at the last detection: the configured ones, or fitted to the
+// data (TrackerConfig::fit_sigmas).
+struct FittedGates {
+  double max_sheen = 0.0;  // used
+  double max_epipolar_spread_px = 0.0;
+  double configured_sheen = 0.0;  // TrackerConfig's
+  double configured_epipolar_spread_px = 0.0;
+  bool sheen_fitted = false;
+  bool epipolar_spread_fitted = false;
+  // "sheen 2.0 %, epipolar spread 0.15 px (as configured)", or with "fitted to these images"
+  // and the configured value beside each fitted one.
+  [[nodiscard]] std::string summary() const;
 };
 
 struct Feature {
@@ -244,6 +269,8 @@ class StereoTracker {
   }
   // The candidates of the last initialize(), rejected ones included.
   [[nodiscard]] const std::vector<StereoCandidate>& candidates() const { return candidates_; }
+  // The neighbour gates' thresholds the last detection used.
+  [[nodiscard]] const FittedGates& fittedGates() const noexcept { return gates_; }
 
   // Per frame: the real-time path.
   void track(const cv::Mat& left, const cv::Mat& right) noexcept;
@@ -329,6 +356,7 @@ class StereoTracker {
   double depth_tolerance_mm_ = 0.0;
   int next_id_ = 0;
   int detected_ok_ = 0;
+  FittedGates gates_;
 };
 
 }  // namespace pulsetrack::vision
