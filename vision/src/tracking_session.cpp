@@ -294,8 +294,10 @@ const PairResult& TrackingSession::process(const cv::Mat& left, const cv::Mat& r
     if (redetect_requested_ || tracker_.needsRedetection()) {
       redetect_requested_ = false;
       // The new features' reference is where they are now: the signal goes on from the value
-      // just measured with the old ones.
-      if (detect(left, right, true)) {
+      // just measured with the old ones. With none ok there is nothing to fill around (the
+      // hidden ones cannot be predicted: their positions are stale and would keep new corners
+      // out of their regions): a fresh detection, its stereo search included, under new ids.
+      if (detect(left, right, tracker_.okCount() > 0)) {
         ++redetections_;
         ++detections_;
         result_.detected = true;

@@ -305,21 +305,30 @@ class StereoTracker {
     std::array<double, 2> max0{255.0, 255.0};
     std::array<double, 2> mean0{0.0, 0.0};
     double view_gain = 1.0;  // right / left brightness here: the nearest features' median
+    // The rig's signed epipolar offset here (px): the nearest features' median at detection.
+    // Tracking gates a match's offset against it (max_epipolar_px).
+    double rig_offset = 0.0;
     // Where the feature would have been in the first detection's pair (its own position then,
     // or for a later one, its position less its neighbours' motion since): the common epoch
     // the neighbours' motion is measured from.
     cv::Vec2d epoch_left, epoch_right;
-    bool seen = true;      // ok in the last pair: tracked from there; else predicted
+    bool seen = true;  // ok in the last pair: tracked from there; else predicted
+    // Its image motion over the last pair, per camera (left, right track), while ok in both
+    // pairs: the next search starts there (constant velocity), else zero.
+    std::array<cv::Vec2d, 2> velocity{cv::Vec2d(0.0, 0.0), cv::Vec2d(0.0, 0.0)};
     int not_ok_pairs = 0;  // pairs since it was last ok
   };
   // Detection: fresh (initialize) or filling around the features there are (redetect).
   Result<int> detect(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
                      double depth_tolerance_mm, bool fill);
   // Where feature i should be now from its nearest ok features (among the first `among`) and
-  // their motion since the epoch; false when none is ok.
-  bool predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among) const noexcept;
+  // their motion since the epoch; false when none is ok. `spread_px`: the RMS of their motions
+  // about that mean (how far to trust it).
+  bool predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among,
+               double& spread_px) const noexcept;
   // `radius`: the search window's half size (smaller when a hidden feature's position is
   // predicted); `reacquiring`: the right camera is searched only when the left found it.
+  // The search starts at the last position plus the feature's velocity.
   void trackOne(size_t i, const cv::Mat& left, const cv::Mat& right, int radius,
                 bool reacquiring) noexcept;
   bool searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s, cv::Vec2d& pos,
