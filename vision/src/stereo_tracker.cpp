@@ -323,9 +323,9 @@ std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img, size_t&
   // leave the ROI short). At most kCandidateFactor x the ceiling.
   constexpr size_t kCandidateFactor = 4;
   std::vector<cv::Point2d> out;
-  const auto take = [&](int spacing) {
+  const auto take = [&](int spacing, double sensitivity) {
     for (const Candidate& c : maxima) {
-      if (c.response < config_.sensitivity_min * max_response) break;
+      if (c.response < sensitivity * max_response) break;
       if (out.size() >= kCandidateFactor * static_cast<size_t>(std::max(config_.max_features, 1)))
         break;
       const bool crowded = std::any_of(out.begin(), out.end(), [&](const cv::Point2d& o) {
@@ -334,12 +334,17 @@ std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img, size_t&
       if (!crowded) out.emplace_back(c.p.x, c.p.y);
     }
   };
-  take(config_.min_distance_px);
+  take(config_.min_distance_px, config_.sensitivity_min);
   // Then, after all of those, the corners between them down to dense_distance_px: taken only
   // where the spaced ones did not fill the ceiling.
   spaced = out.size();
   const int dense = std::clamp(config_.dense_distance_px, 1, config_.min_distance_px);
-  if (dense < config_.min_distance_px) take(dense);
+  if (dense < config_.min_distance_px) take(dense, config_.sensitivity_min);
+  // Last, fainter corners, spaced, down to faint_sensitivity_min: Harris's response grows with
+  // the fourth power of the contrast, so beside a bright glint's rim smooth tissue's corners
+  // fall under sensitivity_min of the strongest (the Hamlyn heart: 60 candidates for 100).
+  if (config_.faint_sensitivity_min < config_.sensitivity_min)
+    take(config_.min_distance_px, config_.faint_sensitivity_min);
   if (masked != nullptr) {
     // The strongest of the masked maxima, spaced as the chosen ones are.
     std::sort(glinting.begin(), glinting.end(),
