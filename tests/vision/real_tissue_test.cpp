@@ -10,6 +10,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <vector>
 
+#include "hamlyn.hpp"
 #include "pulsetrack/vision/stereo_search.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
 #include "pulsetrack/vision/tracking_session.hpp"
@@ -23,18 +24,15 @@ namespace {
 // ROI against a 0.15 px gate, and the moist surface shines differently per view everywhere.
 // Fitted to the pair's own values they keep what the other gates accept, within their bounds.
 TEST(RealTissue, NeighbourGatesFitToTheBeatingHeart) {
-  const auto dir = data::shared("hamlyn-invivo-tpsnet");
-  PULSETRACK_SKIP_WITHOUT_DATA(dir);
-  auto rig = loadRig(dir / "rig.yaml");
-  ASSERT_TRUE(rig) << rig.error().message;
-  const cv::Mat left = cv::imread((dir / "left_0001.png").string(), cv::IMREAD_GRAYSCALE);
-  const cv::Mat right = cv::imread((dir / "right_0001.png").string(), cv::IMREAD_GRAYSCALE);
-  ASSERT_FALSE(left.empty());
-  ASSERT_FALSE(right.empty());
-  const cv::Rect roi_left(120, 60, 200, 180);
-  auto found = findStereoRange(*rig, left, right, roi_left);
+  PULSETRACK_SKIP_WITHOUT_DATA(hamlyn::dir());
+  const auto pair = hamlyn::firstPair();
+  ASSERT_TRUE(pair);
+  const StereoRig* rig = &pair->rig;
+  const cv::Mat& left = pair->left;
+  const cv::Mat& right = pair->right;
+  auto found = findStereoRange(*rig, left, right, hamlyn::kRoi);
   ASSERT_TRUE(found) << found.error().message;
-  const Roi roi{roi_left, found->right};
+  const Roi roi{hamlyn::kRoi, found->right};
 
   TrackerConfig fixed;
   fixed.fit_sigmas = 0.0;
@@ -78,22 +76,18 @@ TEST(RealTissue, NeighbourGatesFitToTheBeatingHeart) {
 // re-detection was never due again; tracking lost the heart's faster phases to the search
 // window and the rectified rows' 0.6 px offset to the epipolar gate).
 TEST(RealTissue, TheBeatingHeartIsTrackedThroughTheWholeSequence) {
-  const auto dir = data::shared("hamlyn-invivo-tpsnet");
-  PULSETRACK_SKIP_WITHOUT_DATA(dir);
-  auto rig = loadRig(dir / "rig.yaml");
+  PULSETRACK_SKIP_WITHOUT_DATA(hamlyn::dir());
+  auto rig = loadRig(hamlyn::dir() / "rig.yaml");
   ASSERT_TRUE(rig) << rig.error().message;
   SessionConfig sc;
-  sc.roi.left = cv::Rect(120, 60, 200, 180);
+  sc.roi.left = hamlyn::kRoi;
   TrackingSession session(*rig, sc);
   constexpr int kPairs = 300;
   std::vector<int> ok_per_pair;
   std::vector<double> vertical;
   for (int k = 1; k <= kPairs; ++k) {
-    char name[32];
-    std::snprintf(name, sizeof name, "left_%04d.png", k);
-    const cv::Mat left = cv::imread((dir / name).string(), cv::IMREAD_GRAYSCALE);
-    std::snprintf(name, sizeof name, "right_%04d.png", k);
-    const cv::Mat right = cv::imread((dir / name).string(), cv::IMREAD_GRAYSCALE);
+    cv::Mat left, right;
+    hamlyn::readPair(k, left, right);
     ASSERT_FALSE(left.empty() || right.empty()) << "pair " << k;
     const PairResult& r = session.process(left, right, static_cast<uint64_t>(k),
                                           static_cast<int64_t>(k) * 40'000'000);

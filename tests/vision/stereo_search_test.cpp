@@ -9,20 +9,20 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "hamlyn.hpp"
 #include "test_util.hpp"
 
 namespace pulsetrack::vision {
 namespace {
 
 TEST(StereoSearch, FindsTheBeatingHeartInTheRightView) {
-  const auto dir = data::shared("hamlyn-invivo-tpsnet");
-  PULSETRACK_SKIP_WITHOUT_DATA(dir);
-  auto rig = loadRig(dir / "rig.yaml");
-  ASSERT_TRUE(rig) << rig.error().message;
-  const cv::Mat left = cv::imread((dir / "left_0001.png").string(), cv::IMREAD_GRAYSCALE);
-  const cv::Mat right = cv::imread((dir / "right_0001.png").string(), cv::IMREAD_GRAYSCALE);
-  ASSERT_FALSE(left.empty());
-  const cv::Rect roi(120, 60, 200, 180);
+  PULSETRACK_SKIP_WITHOUT_DATA(hamlyn::dir());
+  const auto pair = hamlyn::firstPair();
+  ASSERT_TRUE(pair);
+  const StereoRig* rig = &pair->rig;
+  const cv::Mat& left = pair->left;
+  const cv::Mat& right = pair->right;
+  const cv::Rect roi = hamlyn::kRoi;
   auto found = findStereoRange(*rig, left, right, roi);
   ASSERT_TRUE(found) << found.error().message;
   std::cerr << "hamlyn pair 1: " << found->summary() << "\n";

@@ -865,9 +865,8 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   // epoch (the first features' own: their epoch is their detection).
   for (size_t i = first_new; i < features_.size(); ++i) {
     cv::Vec2d pl, pr;
-    double spread = 0.0;
     states_[i].epoch_left = features_[i].left;  // predict() ranks neighbours from here
-    if (predict(i, pl, pr, first_new, spread)) {
+    if (predict(i, pl, pr, first_new)) {
       states_[i].epoch_left = features_[i].left - (pl - features_[i].left);
       states_[i].epoch_right = states_[i].right_track - (pr - states_[i].right_track);
     }
@@ -1247,8 +1246,7 @@ void StereoTracker::motionGate() noexcept {
     Feature& f = features_[i];
     if (f.status != FeatureStatus::kOk) continue;
     cv::Vec2d pl, pr;
-    double spread = 0.0;
-    if (!predict(i, pl, pr, n, spread)) continue;
+    if (!predict(i, pl, pr, n)) continue;
     const cv::Vec2d off = (states_[i].right_track - pr) - (f.left - pl);
     if (std::abs(off[0]) > config_.max_motion_px || std::abs(off[1]) > config_.max_motion_px)
       f.failed |= gateBit(Gate::kMotion);  // the status follows below (predict() reads it)

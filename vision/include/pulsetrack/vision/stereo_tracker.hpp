@@ -331,6 +331,10 @@ class StereoTracker {
   // about that mean (how far to trust it).
   bool predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among,
                double& spread_px) const noexcept;
+  bool predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among) const noexcept {
+    double spread_px = 0.0;
+    return predict(i, left, right_track, among, spread_px);
+  }
   // `radius`: the search window's half size (smaller when a hidden feature's position is
   // predicted); `reacquiring`: the right camera is searched only when the left found it.
   // The search starts at the last position plus the feature's velocity.
