@@ -507,6 +507,14 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
   collect(3.0, n, id2);
   EXPECT_GT(n, 2);
   EXPECT_GT(id2, id1);  // start detects afresh
+  // A left ROI alone (issue 32): the daemon finds the right one in the next pair and detects
+  // afresh there.
+  r = test::run(ctl + "set-roi --roi-left 483,339,400,340");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  int id3 = 0;
+  collect(4.0, n, id3);
+  EXPECT_GT(n, 2);
+  EXPECT_GT(id3, id2);
 
   // Garbage: an unknown command with control bytes, a bad ROI, and a flood of them.
   pulsetrack_msgs_msg_dds__Command_ c{};

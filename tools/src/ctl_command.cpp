@@ -62,13 +62,16 @@ int runCtl(const CtlArgs& a) {
                      : static_cast<uint32_t>(
                            std::chrono::system_clock::now().time_since_epoch().count() & 0xffffff);
   if (a.command == "set-roi") {
-    if (a.roi_left.size() != 4 || a.roi_right.size() != 4) {
-      fmt::print(stderr, "ctl: set-roi needs --roi-left and --roi-right as x,y,w,h\n");
+    // Without --roi-right the daemon finds it in the next pair (the left ROI's epipolar search).
+    if (a.roi_left.size() != 4 || (!a.roi_right.empty() && a.roi_right.size() != 4)) {
+      fmt::print(stderr,
+                 "ctl: set-roi needs --roi-left x,y,w,h (and --roi-right x,y,w,h, or none "
+                 "for the daemon to find it)\n");
       return 2;
     }
     for (int i = 0; i < 4; ++i) {
       c.roi_left[i] = a.roi_left[static_cast<size_t>(i)];
-      c.roi_right[i] = a.roi_right[static_cast<size_t>(i)];
+      c.roi_right[i] = a.roi_right.empty() ? 0 : a.roi_right[static_cast<size_t>(i)];
     }
     c.depth_tolerance_m = a.depth_mm * 1e-3;
   }
@@ -122,8 +125,11 @@ CommandRunner addCtlCommand(CLI::App& app) {
   cmd->add_option("--rig", a->rig,
                   "The daemon's rig_id (a check: default, whichever rig the namespace has)");
   cmd->add_option("--roi-left", a->roi_left, "set-roi: x,y,w,h (px)")->delimiter(',');
-  cmd->add_option("--roi-right", a->roi_right, "set-roi: x,y,w,h (px)")->delimiter(',');
-  cmd->add_option("--depth", a->depth_mm, "set-roi: depth tolerance (mm)")
+  cmd->add_option("--roi-right", a->roi_right,
+                  "set-roi: x,y,w,h (px); default: the daemon finds it in the next pair by "
+                  "searching the left ROI's epipolar lines from 20 mm to 1 m")
+      ->delimiter(',');
+  cmd->add_option("--depth", a->depth_mm, "set-roi with --roi-right: depth tolerance (mm)")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
   cmd->add_option("--request-id", a->request_id, "Echoed in the health's last_error on refusal");
