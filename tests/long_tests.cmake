@@ -16,7 +16,8 @@ set(pulsetrack_long_tests
   StereoTracker.StaticGlossyCortexAt45cm
   VideoFiles.TrackReadsTwoFilesSideBySideAndTopBottomAndSeesADroppedFrame
   ValidateCli.StaticProtocolRegistrationTableIIStatisticsAndReport
-  Keystores.BadSecurityFilesAreNamedAndTheDaemonDoesNotStart)
+  Keystores.BadSecurityFilesAreNamedAndTheDaemonDoesNotStart
+  RealTexture.TrackedAgainstExactTruthAtEachResolution)
 foreach(t IN LISTS pulsetrack_long_tests)
   set_tests_properties(${t} PROPERTIES LABELS long)
 endforeach()

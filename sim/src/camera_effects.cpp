@@ -1,6 +1,7 @@
 #include "pulsetrack/sim/camera_effects.hpp"
 
 #include <cmath>
+#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 namespace pulsetrack::sim {
@@ -43,6 +44,10 @@ void CameraEffects::apply(const cv::Mat& radiance, double t, cv::Mat& out) {
     work_ += noise_;
   }
   work_.convertTo(out, CV_8UC1);  // rounds and saturates: highlights clip at 255
+  if (spec_.jpeg_quality > 0) {
+    cv::imencode(".jpg", out, jpeg_, {cv::IMWRITE_JPEG_QUALITY, spec_.jpeg_quality});
+    cv::imdecode(jpeg_, cv::IMREAD_GRAYSCALE, &out);
+  }
 }
 
 }  // namespace pulsetrack::sim

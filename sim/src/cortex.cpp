@@ -5,6 +5,7 @@
 #include <limits>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
+#include <opencv2/photo.hpp>
 #include <random>
 
 #include "texture_paint.hpp"
@@ -349,6 +350,39 @@ bool CortexScene::occluded(const cv::Vec3d& p, const cv::Vec3d& camera_centre, d
   return segmentHitsCylinder(camera_centre, p, tip, end, in.radius_mm);
 }
 
+namespace {
+
+// A real photograph as the albedo (CortexSpec::texture "image"): its glints inpainted, scaled
+// to texture_image_mm across at texture_px_per_mm, centred on the patch and mirrored outwards
+// to `size`. Its grey levels are the albedo (what that camera saw, the scene's light and
+// shading on top; tissue_albedo is not used).
+cv::Mat imageTexture(const CortexSpec& spec, cv::Size size) {
+  const cv::Mat& grey = spec.texture_image_grey;
+  cv::Mat glints = grey >= 240;
+  cv::dilate(glints, glints, cv::getStructuringElement(cv::MORPH_ELLIPSE, {5, 5}));
+  cv::Mat clean;
+  cv::inpaint(grey, glints, clean, 3.0, cv::INPAINT_TELEA);
+  const double px_per_image_px = spec.texture_image_mm * spec.texture_px_per_mm / grey.cols;
+  cv::Mat scaled;
+  cv::resize(clean, scaled,
+             cv::Size(std::max(1, static_cast<int>(std::lround(grey.cols * px_per_image_px))),
+                      std::max(1, static_cast<int>(std::lround(grey.rows * px_per_image_px)))),
+             0, 0, px_per_image_px < 1.0 ? cv::INTER_AREA : cv::INTER_CUBIC);
+  // Mirror outwards until it covers `size` (each pass at most doubles it), then cut it centred.
+  while (scaled.cols < size.width || scaled.rows < size.height) {
+    const int bx = std::min(scaled.cols - 1, std::max(0, (size.width - scaled.cols + 1) / 2));
+    const int by = std::min(scaled.rows - 1, std::max(0, (size.height - scaled.rows + 1) / 2));
+    cv::copyMakeBorder(scaled, scaled, by, by, bx, bx, cv::BORDER_REFLECT_101);
+  }
+  const cv::Rect centre((scaled.cols - size.width) / 2, (scaled.rows - size.height) / 2, size.width,
+                        size.height);
+  cv::Mat out;
+  scaled(centre).convertTo(out, CV_32FC1);  // its grey levels are the albedo
+  return out;
+}
+
+}  // namespace
+
 void CortexScene::buildTexture() {
   std::mt19937 rng(spec_.seed);
   cv::RNG cvrng(spec_.seed * 104729ULL + 1ULL);
@@ -404,6 +438,7 @@ void CortexScene::buildTexture() {
              (1.0F + noise)
                  .mul(1.0F - static_cast<float>(spec_.vessel_contrast) * vessel_f)
                  .mul(1.0F - 0.3F * sulcus_f);
+  if (spec_.texture == "image") texture_ = imageTexture(spec_, size);
   if (spec_.texture == "dots") {
     texture_.setTo(static_cast<float>(spec_.tissue_albedo));
     for (double v = -std::floor(extent / 4) * 4; v <= extent; v += 4.0) {

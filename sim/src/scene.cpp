@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 #include <toml++/toml.h>
 
+#include <opencv2/imgcodecs.hpp>
 #include <set>
 
 #include "pulsetrack/cfg/table_reader.hpp"
@@ -26,6 +27,7 @@ void readCameraKeys(TableReader& r, CameraEffectsSpec& c) {
   c.gain_amplitude = r.number("gain_amplitude", c.gain_amplitude, 0.0, 0.9);
   c.gain_period_s = r.number("gain_period_s", c.gain_period_s, 0.1, 1e6);
   c.gain_phase_deg = r.number("gain_phase_deg", c.gain_phase_deg, -360.0, 360.0);
+  c.jpeg_quality = r.integer("jpeg_quality", c.jpeg_quality, 0, 100);
 }
 
 // [camera] applies to both cameras; [camera.right] overrides any of its keys for the right one
@@ -91,7 +93,9 @@ void readCortex(TableReader& r, CortexSpec& c) {
   c.mesh_step_mm = r.number("mesh_step_mm", c.mesh_step_mm, 0.1, 2.0);
   c.texture_px_per_mm = r.number("texture_px_per_mm", c.texture_px_per_mm, 4.0, 64.0);
   c.vessel_trees = r.integer("vessel_trees", c.vessel_trees, 0, 100);
-  c.texture = r.string("texture", c.texture, {"brain", "dots"});
+  c.texture = r.string("texture", c.texture, {"brain", "dots", "image"});
+  c.texture_image = r.string("texture_image", "");
+  c.texture_image_mm = r.number("texture_image_mm", c.texture_image_mm, 1.0, 500.0);
   c.tissue_albedo = r.number("tissue_albedo", c.tissue_albedo, 10.0, 250.0);
   c.vessel_contrast = r.number("vessel_contrast", c.vessel_contrast, 0.0, 0.95);
   c.wrinkle_slope = r.number("wrinkle_slope", c.wrinkle_slope, 0.0, 5.0);
@@ -218,6 +222,30 @@ vision::Result<SceneSpec> parseScene(const std::string& text, const std::filesys
   }
   r.finish();
   if (!error.empty()) return fail(error);
+  if (s.kind == SceneKind::kCortex && s.cortex.texture == "image") {
+    if (s.cortex.texture_image.empty()) {
+      return fail(
+          fmt::format("{}: cortex.texture = \"image\" needs cortex.texture_image (the "
+                      "path of a grey or colour photograph of tissue)",
+                      file));
+    }
+    s.cortex.texture_image = path.parent_path() / s.cortex.texture_image;
+    cv::Mat grey;
+    try {
+      grey = cv::imread(s.cortex.texture_image.string(), cv::IMREAD_GRAYSCALE);
+    } catch (const cv::Exception& e) {
+      return fail(fmt::format("{}: cortex.texture_image {}: {}", file,
+                              s.cortex.texture_image.string(), e.err));
+    }
+    if (grey.empty() || grey.cols < 16 || grey.rows < 16) {
+      return fail(fmt::format(
+          "{}: cortex.texture_image {}: {}", file, s.cortex.texture_image.string(),
+          grey.empty() ? "cannot read it as an image (missing, or not PNG/JPEG/...; a real data "
+                         "set lives in ../shared/data beside the checkout)"
+                       : "smaller than 16x16 px"));
+    }
+    s.cortex.texture_image_grey = grey;
+  }
   s.cortex.seed = s.seed;
   return s;
 }

@@ -1,11 +1,15 @@
 #include <fmt/format.h>
+#include <toml++/toml.h>
 
 #include <Eigen/Geometry>
 #include <cmath>
 #include <fstream>
 #include <opencv2/core/eigen.hpp>
+#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <sstream>
 
+#include "pulsetrack/cfg/table_reader.hpp"
 #include "pulsetrack/record/recording.hpp"
 #include "pulsetrack/sim/scene.hpp"
 
@@ -88,7 +92,23 @@ vision::Result<void> writeSimulation(StereoSimulator& sim, const std::filesystem
   m.nominal_fps = spec.fps;
   auto writer = record::Writer::create(out, m, sim.rig(), 1);
   if (!writer) return std::unexpected(writer.error());
-  if (auto ok = writeText(out / "scene.toml", spec.source_text); !ok) return ok;
+  std::string scene_text = spec.source_text;
+  if (spec.kind == SceneKind::kCortex && spec.cortex.texture == "image") {
+    // The recording carries the photograph its surface wears (pulsetrack evaluate reads the
+    // scene from the recording): texture.png beside scene.toml, which names it.
+    if (!cv::imwrite((out / "texture.png").string(), spec.cortex.texture_image_grey))
+      return fail(fmt::format("{}: cannot write", (out / "texture.png").string()));
+    toml::table root;
+    std::string syntax;
+    if (!cfg::parseToml(scene_text, spec.source_path.string(), root, syntax)) return fail(syntax);
+    if (toml::table* cortex = root["cortex"].as_table())
+      cortex->insert_or_assign("texture_image", "texture.png");
+    std::ostringstream text;
+    text << "# " << spec.source_path.string() << ", its texture_image copied to texture.png\n"
+         << root << "\n";
+    scene_text = text.str();
+  }
+  if (auto ok = writeText(out / "scene.toml", scene_text); !ok) return ok;
   std::error_code ec;
   std::filesystem::create_directories(out / "truth", ec);
   if (ec) return fail(fmt::format("{}: {}", (out / "truth").string(), ec.message()));

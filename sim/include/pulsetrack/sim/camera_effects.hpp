@@ -1,10 +1,12 @@
 #pragma once
 // What a real camera does to the scene's radiance: defocus blur, vignetting, gain changes,
-// sensor noise (Gaussian, sigma in grey levels), 8-bit quantization with saturation, and
-// dropped frames (decided per frame from the seed, so a scene is reproducible).
+// sensor noise (Gaussian, sigma in grey levels), 8-bit quantization with saturation, lossy
+// compression (JPEG), and dropped frames (decided per frame from the seed, so a scene is
+// reproducible).
 
 #include <opencv2/core.hpp>
 #include <random>
+#include <vector>
 
 namespace pulsetrack::sim {
 
@@ -20,6 +22,10 @@ struct CameraEffectsSpec {
   double gain_period_s = 30.0;
   double gain_phase_deg = 0.0;    // independent drift per camera
   double drop_probability = 0.0;  // per frame
+  // Lossy compression as a video link or recorder applies it: each 8-bit frame through JPEG at
+  // this quality (1-100; 0: none). Blocking and ringing are what matter to a matcher; an H.264
+  // stream adds motion-compensated prediction on top (not modelled here).
+  int jpeg_quality = 0;
 };
 
 class CameraEffects {
@@ -38,6 +44,7 @@ class CameraEffects {
   cv::Mat vignette_;  // CV_32FC1 multiplier
   cv::Mat work_;
   cv::Mat noise_;
+  std::vector<uint8_t> jpeg_;
   cv::RNG rng_;
 };
 

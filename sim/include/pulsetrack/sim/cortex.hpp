@@ -11,6 +11,7 @@
 // left camera frame {C} is the reference: CortexScene::position(u, v, t) is the true 3D position
 // of a material point at time t in {C}, in mm.
 
+#include <filesystem>
 #include <limits>
 #include <opencv2/core.hpp>
 #include <string>
@@ -125,8 +126,15 @@ struct CortexSpec {
   double texture_px_per_mm = 32.0;
   int vessel_trees = 16;
   // "brain", or "dots": a test pattern of dark discs (radius 0.4 mm, every 4 mm from (0, 0))
-  // whose centroids a test can measure against the model's projection.
+  // whose centroids a test can measure against the model's projection, or "image": a real
+  // photograph of tissue (texture_image, e.g. an in-vivo endoscope frame) laid over the surface,
+  // texture_image_mm wide, centred, mirrored to cover the patch where it is smaller; its glints
+  // (grey >= 240) are inpainted first; its grey levels are the albedo (they belong to that scene's
+  // light, not to the tissue).
   std::string texture = "brain";
+  std::filesystem::path texture_image;  // resolved against the scene file's folder
+  double texture_image_mm = 30.0;
+  cv::Mat texture_image_grey;     // the image as read (parseScene reads it, or names why not)
   double tissue_albedo = 165.0;   // grey level of tissue under full light
   double vessel_contrast = 0.55;  // how much darker the largest vessels are
   double wrinkle_slope = 1.0;     // scale of the wet-tissue wrinkles' slopes (0: smooth)
