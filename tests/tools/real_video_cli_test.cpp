@@ -56,6 +56,34 @@ TEST(RealVideo, EndoscopeSideBySideWithItsOwnCalibrationAndALeftRoiOnly) {
   EXPECT_NE(r.output.find("rig.yaml: key 'image_width' is missing"), std::string::npos) << r.output;
 }
 
+// No ROI at all (issue 32): the region is found in the first pair and said; the endoscope's
+// abdomen is held as with a hand-drawn ROI (>= 90 ok in each pair).
+TEST(RealVideo, EndoscopeWithoutAnyRoi) {
+  const auto dir = data::shared("surgt-labelling-sample");
+  PULSETRACK_SKIP_WITHOUT_DATA(dir);
+  test::TempDir out;
+  auto r = test::run(test::cli() + " track --rig " + (dir / "rig.yaml").string() + " --video " +
+                     (dir / "video.mp4").string() + " --layout sbs --out " + (out / "t.csv"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(std::regex_search(
+      r.output, std::regex("left ROI [0-9]+,[0-9]+,[0-9]+,[0-9]+ found: the largest well-textured "
+                           "region free of highlights")))
+      << r.output;
+  auto rows = record::readTrackCsv(out / "t.csv");
+  ASSERT_TRUE(rows) << rows.error().message;
+  std::map<long, int> ok;
+  for (const auto& row : *rows)
+    if (row.status == "ok") ++ok[row.frame];
+  ASSERT_EQ(ok.size(), 10U);
+  for (const auto& [frame, n] : ok) EXPECT_GE(n, 90) << "pair " << frame;
+  // --roi-right alone is refused.
+  r = test::run(test::cli() + " track --rig " + (dir / "rig.yaml").string() + " --video " +
+                (dir / "video.mp4").string() + " --layout sbs --roi-right 1,1,100,100 --out " +
+                (out / "u.csv"));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("--roi-right needs --roi-left"), std::string::npos) << r.output;
+}
+
 // The Hamlyn beating heart (300 rectified pairs, 360x288; 25 fps assumed), a left ROI only:
 // tracked through the sequence, and `analyze` on what track wrote names the heartbeat.
 TEST(RealVideo, TheBeatingHeartsCardiacPeakFromALeftRoiOnly) {

@@ -10,6 +10,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "hamlyn.hpp"
+#include "pulsetrack/vision/tracking_session.hpp"
 #include "test_util.hpp"
 
 namespace pulsetrack::vision {
@@ -53,6 +54,59 @@ TEST(StereoSearch, FindsTheBeatingHeartInTheRightView) {
       << none.error().message;
   EXPECT_NE(none.error().message.find("within 200-1000 mm"), std::string::npos)
       << none.error().message;
+}
+
+// No ROI at all (issue 32): the largest well-textured region free of highlights, narrowed to
+// what the right camera sees too.
+TEST(StereoSearch, FindsTheHeartWithoutAnRoi) {
+  PULSETRACK_SKIP_WITHOUT_DATA(hamlyn::dir());
+  const auto pair = hamlyn::firstPair();
+  ASSERT_TRUE(pair);
+  auto region = findTissueRegion(pair->left, 2 * kAffineSide);
+  ASSERT_TRUE(region) << region.error().message;
+  std::cerr << "hamlyn pair 1: " << region->summary() << "\n";
+  const cv::Rect image(0, 0, pair->left.cols, pair->left.rows);
+  EXPECT_EQ(region->roi & image, region->roi);
+  EXPECT_GE(region->roi.area(), image.area() * 4 / 10);
+  // The heart the issue's ROI was drawn over is (mostly) in it.
+  EXPECT_GE((region->roi & hamlyn::kRoi).area(), hamlyn::kRoi.area() * 7 / 10);
+  EXPECT_NE(region->summary().find("found: the largest well-textured region"), std::string::npos);
+
+  auto found = findStereoRoi(pair->rig, pair->left, pair->right, cv::Rect(), 2 * kAffineSide);
+  ASSERT_TRUE(found) << found.error().message;
+  ASSERT_TRUE(found->region.has_value());
+  EXPECT_EQ(found->left, found->region->roi);
+  // Narrowed: its left strip is not in the right view (disparity ~84 px), so the right ROI's
+  // outline (at the median depth) is within a pixel or two of the right image.
+  EXPECT_GE(found->right_outline.x, -2) << found->summary();
+  EXPECT_GE(found->disparity_lo_px, 70.0);
+  EXPECT_LE(found->disparity_hi_px, 105.0);
+  EXPECT_NE(found->summary().find("left ROI "), std::string::npos);
+  // A given ROI is used as given.
+  auto given = findStereoRoi(pair->rig, pair->left, pair->right, hamlyn::kRoi, 2 * kAffineSide);
+  ASSERT_TRUE(given);
+  EXPECT_EQ(given->left, hamlyn::kRoi);
+  EXPECT_FALSE(given->region.has_value());
+}
+
+TEST(StereoSearch, WithoutAnRoiAFlatOrDarkImageSaysWhy) {
+  auto rig = parseRectified("579,180,144,5.5", {360, 288});
+  ASSERT_TRUE(rig);
+  cv::Mat flat(288, 360, CV_8UC1, cv::Scalar(90));
+  auto found = findStereoRoi(*rig, flat, flat, cv::Rect(), 30);
+  ASSERT_FALSE(found);
+  EXPECT_NE(found.error().message.find("no well-textured region of at least 30x30 px"),
+            std::string::npos)
+      << found.error().message;
+  EXPECT_NE(found.error().message.find("of 396 cells of 16 px, 396 are flat"), std::string::npos)
+      << found.error().message;
+  cv::Mat dark(288, 360, CV_8UC1, cv::Scalar(5));
+  found = findStereoRoi(*rig, dark, dark, cv::Rect(), 30);
+  ASSERT_FALSE(found);
+  EXPECT_NE(found.error().message.find("396 dark"), std::string::npos) << found.error().message;
+  // A right ROI needs a left one.
+  EXPECT_FALSE(TrackingSession::checkRoi(*rig, {cv::Rect(), cv::Rect(10, 10, 50, 50)}, 10.0));
+  EXPECT_TRUE(TrackingSession::checkRoi(*rig, {cv::Rect(), cv::Rect()}, 10.0));
 }
 
 TEST(StereoSearch, AFlatOrGlaringRoiSaysWhy) {

@@ -61,7 +61,9 @@ void addCommon(CLI::App* cmd, CommonArgs& a) {
                   "pair (LEFT.yaml,RIGHT.yaml)")
       ->delimiter(',')
       ->expected(2);
-  cmd->add_option("--roi-left", a.roi_left, "Left ROI on the tissue: x,y,w,h (px)")->required();
+  cmd->add_option("--roi-left", a.roi_left,
+                  "Left ROI on the tissue: x,y,w,h (px); default: the largest well-textured region "
+                  "free of highlights in the first pair's left image (said as found)");
   cmd->add_option("--roi-right", a.roi_right,
                   "The corresponding right ROI: x,y,w,h (px); default: found in the first pair "
                   "by searching the left ROI's epipolar lines over --depth-range");
@@ -93,6 +95,10 @@ void addCommon(CLI::App* cmd, CommonArgs& a) {
 
 // The left ROI, and the right one when given (else empty: found in the pair).
 vision::Result<vision::Roi> rois(const CommonArgs& a) {
+  if (a.roi_left.empty()) {
+    if (!a.roi_right.empty()) return vision::fail("--roi-right needs --roi-left");
+    return vision::Roi{};  // both found in the first pair
+  }
   auto l = parseRect(a.roi_left, "--roi-left");
   if (!l) return std::unexpected(l.error());
   if (a.roi_right.empty()) return vision::Roi{*l, {}};
@@ -153,9 +159,11 @@ int runMatch(const MatchArgs& a) {
   if (!rig) return commandError("match", rig.error().message);
   double depth = a.depth;
   if (roi->right == cv::Rect()) {
-    auto found = vision::findStereoRange(*rig, *left, *right, roi->left, *search);
+    auto found =
+        vision::findStereoRoi(*rig, *left, *right, roi->left, 2 * vision::kAffineSide, *search);
     if (!found) return commandError("match", found.error().message);
     fmt::print("stereo search     {}\n", found->summary());
+    roi->left = found->left;
     roi->right = found->right;
     depth = found->tolerance_mm;
   }

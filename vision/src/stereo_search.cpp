@@ -33,7 +33,8 @@ std::string roiText(const cv::Rect& r) {
 }  // namespace
 
 std::string StereoRange::summary() const {
-  std::string s = fmt::format(
+  std::string s = region ? region->summary() + "; " : std::string();
+  s += fmt::format(
       "disparity {:.0f} to {:.0f} px, depth {:.1f} to {:.1f} mm (median {:.1f} mm; {} of {} "
       "patches "
       "matched, {} flat, {} on highlights); right ROI {}, depth tolerance {:.1f} mm",
@@ -218,8 +219,123 @@ Result<StereoRange> findStereoRange(const StereoRig& rig, const cv::Mat& left, c
         outline.emplace_back(static_cast<float>(q[0]), static_cast<float>(q[1]));
     }
   }
-  out.right = outline.empty() ? cv::Rect() : cv::boundingRect(outline) & frame;
+  out.right_outline = outline.empty() ? cv::Rect() : cv::boundingRect(outline);
+  out.right = out.right_outline & frame;
+  out.left = roi;
   return out;
+}
+
+std::string TissueRegion::summary() const {
+  return fmt::format(
+      "left ROI {} found: the largest well-textured region free of highlights ({} of {} cells "
+      "tissue; {} flat, {} on highlights, {} dark)",
+      roiText(roi), tissue, cells, flat, highlights, dark);
+}
+
+Result<TissueRegion> findTissueRegion(const cv::Mat& left, int min_side,
+                                      const StereoSearchConfig& config) {
+  if (left.empty() || left.type() != CV_8UC1)
+    return fail("no ROI given and no grey image to find one in");
+  const int side = std::max(16, std::min(left.cols, left.rows) / 20);
+  const int cols = left.cols / side, rows = left.rows / side;
+  // The cells' grid is centred (the remainder split over both borders).
+  const int x0 = (left.cols - cols * side) / 2, y0 = (left.rows - rows * side) / 2;
+  TissueRegion out;
+  out.cells = cols * rows;
+  // Per cell: 1 tissue, 0 not (flat, glare), and dark cells (outside the field of view) are
+  // never inside. Prefix sums of both over the grid.
+  std::vector<int> tissue_sum(static_cast<size_t>((cols + 1) * (rows + 1)), 0);
+  std::vector<int> dark_sum(tissue_sum.size(), 0);
+  const auto at = [&](std::vector<int>& v, int c, int r) -> int& {
+    return v[static_cast<size_t>(r * (cols + 1) + c)];
+  };
+  for (int r = 0; r < rows; ++r) {
+    for (int c = 0; c < cols; ++c) {
+      const cv::Mat cell = left(cv::Rect(x0 + c * side, y0 + r * side, side, side));
+      cv::Scalar mean, sd;
+      cv::meanStdDev(cell, mean, sd);
+      // A few glinting pixels the tracker's own glint mask handles; a cell a tenth glare is lost.
+      const int glare = cv::countNonZero(cell >= config.highlight);
+      const bool dark = mean[0] < config.region_dark;
+      const bool highlight = !dark && glare * 10 > side * side;
+      const bool flat = !dark && !highlight && sd[0] < config.region_texture;
+      const bool tissue = !dark && !highlight && !flat;
+      out.dark += dark ? 1 : 0;
+      out.highlights += highlight ? 1 : 0;
+      out.flat += flat ? 1 : 0;
+      out.tissue += tissue ? 1 : 0;
+      at(tissue_sum, c + 1, r + 1) = (tissue ? 1 : 0) + at(tissue_sum, c, r + 1) +
+                                     at(tissue_sum, c + 1, r) - at(tissue_sum, c, r);
+      at(dark_sum, c + 1, r + 1) =
+          (dark ? 1 : 0) + at(dark_sum, c, r + 1) + at(dark_sum, c + 1, r) - at(dark_sum, c, r);
+    }
+  }
+  // The rectangle of cells with the most tissue less kBadWeight per other cell, no dark one,
+  // at most kMaxAspect times longer than wide (a strip along the image's edge tracks poorly).
+  constexpr int kBadWeight = 3;
+  constexpr int kMaxAspect = 2;
+  int best = 0;
+  const auto sum = [&](std::vector<int>& v, int c0, int r0, int c1, int r1) {
+    return at(v, c1, r1) - at(v, c0, r1) - at(v, c1, r0) + at(v, c0, r0);
+  };
+  for (int r0 = 0; r0 < rows; ++r0) {
+    for (int r1 = r0 + 1; r1 <= rows; ++r1) {
+      for (int c0 = 0; c0 < cols; ++c0) {
+        for (int c1 = c0 + 1; c1 <= cols; ++c1) {
+          const int w = c1 - c0, h = r1 - r0;
+          if (w > kMaxAspect * h || h > kMaxAspect * w) continue;
+          if (sum(dark_sum, c0, r0, c1, r1) > 0) break;  // wider only adds the dark cell
+          const int good = sum(tissue_sum, c0, r0, c1, r1);
+          const int score = good - kBadWeight * (w * h - good);
+          if (score > best) {
+            best = score;
+            out.roi = cv::Rect(x0 + c0 * side, y0 + r0 * side, w * side, h * side);
+          }
+        }
+      }
+    }
+  }
+  if (out.roi.width < min_side || out.roi.height < min_side) {
+    return fail(fmt::format(
+        "no ROI given, and no well-textured region of at least {}x{} px free of highlights in "
+        "the left image: of {} cells of {} px, {} are flat (grey SD under {:g}), {} on highlights "
+        "(>= {}), {} dark (mean under {:g}); give one with --roi-left",
+        min_side, min_side, out.cells, side, out.flat, config.region_texture, out.highlights,
+        config.highlight, out.dark, config.region_dark));
+  }
+  return out;
+}
+
+Result<StereoRange> findStereoRoi(const StereoRig& rig, const cv::Mat& left, const cv::Mat& right,
+                                  const cv::Rect& roi_left, int min_side,
+                                  const StereoSearchConfig& config) {
+  if (roi_left != cv::Rect()) return findStereoRange(rig, left, right, roi_left, config);
+  auto region = findTissueRegion(left, min_side, config);
+  if (!region) return std::unexpected(region.error());
+  auto range = findStereoRange(rig, left, right, region->roi, config);
+  if (!range) return fail(fmt::format("{}; but {}", region->summary(), range.error().message));
+  // Narrowed to what the right camera sees too: where the right ROI was cut at the image's
+  // border, the left one loses as much on that side (the views map almost by a shift).
+  const cv::Rect& l = region->roi;
+  const cv::Rect& r = range->right_outline;
+  const cv::Size size = rig.right.imageSize();
+  const int cut_left = std::max(0, -r.x);
+  const int cut_right = std::max(0, r.x + r.width - size.width);
+  const int cut_top = std::max(0, -r.y);
+  const int cut_bottom = std::max(0, r.y + r.height - size.height);
+  if (cut_left + cut_right + cut_top + cut_bottom > 0) {
+    const cv::Rect narrowed(l.x + cut_left, l.y + cut_top, l.width - cut_left - cut_right,
+                            l.height - cut_top - cut_bottom);
+    if (narrowed.width < min_side || narrowed.height < min_side) {
+      return fail(fmt::format("{}; but the right camera sees only {} of it: give --roi-left",
+                              region->summary(), roiText(range->right)));
+    }
+    region->roi = narrowed;
+    range = findStereoRange(rig, left, right, narrowed, config);
+    if (!range) return fail(fmt::format("{}; but {}", region->summary(), range.error().message));
+  }
+  range->region = *region;
+  return range;
 }
 
 }  // namespace pulsetrack::vision

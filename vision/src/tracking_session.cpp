@@ -58,8 +58,10 @@ Result<void> TrackingSession::checkRoi(const StereoRig& rig, const Roi& roi,
   const cv::Size size = rig.left.imageSize();
   const cv::Rect frame(0, 0, size.width, size.height);
   constexpr int kMin = 2 * kAffineSide;
+  if (roi.left == cv::Rect() && roi.right != cv::Rect())
+    return fail(fmt::format("right ROI {} without a left ROI", roiText(roi.right)));
   for (const auto& [name, r] : {std::pair{"left", roi.left}, std::pair{"right", roi.right}}) {
-    if (r == cv::Rect() && name[0] == 'r') continue;  // found in the pair
+    if (r == cv::Rect()) continue;  // found in the pair (the left one: findStereoRoi)
     if ((r & frame) != r || r.width <= 0 || r.height <= 0) {
       return fail(fmt::format("{} ROI {}: not inside the {}x{} image", name, roiText(r), size.width,
                               size.height));
@@ -217,7 +219,7 @@ bool TrackingSession::detect(const cv::Mat& left, const cv::Mat& right, bool red
   Roi roi = config_.roi;
   double tolerance = config_.depth_tolerance_mm;
   if (!redetection && roi.right == cv::Rect()) {
-    auto found = findStereoRange(rig_, left, right, roi.left, config_.search);
+    auto found = findStereoRoi(rig_, left, right, roi.left, 2 * kAffineSide, config_.search);
     if (!found) {
       setReason(fmt::format("{}; detection is tried again every {:g} s", found.error().message,
                             config_.retry_interval_s));
@@ -225,6 +227,7 @@ bool TrackingSession::detect(const cv::Mat& left, const cv::Mat& right, bool red
     }
     range_ = *found;
     ++range_serial_;
+    roi.left = found->left;
     roi.right = found->right;
     tolerance = found->tolerance_mm;
     if (auto usable = checkRoi(rig_, roi, tolerance); !usable) {

@@ -10,6 +10,7 @@
 // their vertical offset from the epipolar lines is the rig's residual on this data.
 
 #include <opencv2/core.hpp>
+#include <optional>
 #include <string>
 
 #include "pulsetrack/vision/error.hpp"
@@ -25,10 +26,25 @@ struct StereoSearchConfig {
   double min_texture = 3.0;  // grey levels: a patch's standard deviation below is flat
   int highlight = 250;       // a patch with a pixel at or over this is on a highlight
   double band_px = 3.0;      // half width of the epipolar band searched
+  // Without a left ROI (findTissueRegion): the image in cells of about 1/20 of its smaller side
+  // (16 px at least); a cell is tissue to track when its grey levels' standard deviation is at
+  // least region_texture, under a tenth of it is highlight (>= highlight) and its mean is above
+  // region_dark (not the black beyond an endoscope's field stop or a vignetted corner).
+  double region_texture = 4.0;
+  double region_dark = 25.0;
+};
+
+// The left ROI found in an image when none is given: the largest rectangle of tissue cells.
+struct TissueRegion {
+  cv::Rect roi;
+  int cells = 0, tissue = 0, flat = 0, highlights = 0, dark = 0;
+  // "left ROI 40,16,300,256 found: the largest well-textured region free of highlights (...)".
+  [[nodiscard]] std::string summary() const;
 };
 
 struct StereoRange {
   cv::Rect right;             // the right ROI: the left ROI's surface, at the median depth
+  cv::Rect right_outline;     // ... before it was cut to the right image
   double depth_mm = 0.0;      // median depth of the matches
   double tolerance_mm = 0.0;  // the tracker's depth tolerance: covers their spread
   double depth_lo_mm = 0.0;   // 5th and 95th percentiles of the matches' depths
@@ -38,6 +54,8 @@ struct StereoRange {
   double vertical_px = 0.0;  // median signed distance of the matches from their epipolar lines
   double vertical_spread_px = 0.0;  // 1.4826 MAD of those distances
   int patches = 0, flat = 0, highlights = 0, matched = 0;
+  cv::Rect left;                       // the left ROI searched (given, or found: region)
+  std::optional<TissueRegion> region;  // findStereoRoi without a left ROI: how it was found
   // "disparity 74-102 px, depth 36-45 mm (61 of 100 patches; the rig is off by 0.4 px ...)".
   [[nodiscard]] std::string summary() const;
 };
@@ -47,6 +65,20 @@ struct StereoRange {
 [[nodiscard]] Result<StereoRange> findStereoRange(const StereoRig& rig, const cv::Mat& left,
                                                   const cv::Mat& right, const cv::Rect& roi_left,
                                                   const StereoSearchConfig& config = {});
+
+// The largest well-textured region free of highlights and dark borders (the config's region_*
+// keys), for a user who gives no ROI. Fails, saying what the image is made of, when no region
+// of at least min_side x min_side px is found. Instruments are not recognized as such (only
+// their highlights and flat metal are left out).
+[[nodiscard]] Result<TissueRegion> findTissueRegion(const cv::Mat& left, int min_side,
+                                                    const StereoSearchConfig& config = {});
+
+// The ROI pair from a left ROI, or from none (roi_left empty: findTissueRegion first, then the
+// found ROI is narrowed to what the right camera sees too): findStereoRange on it.
+[[nodiscard]] Result<StereoRange> findStereoRoi(const StereoRig& rig, const cv::Mat& left,
+                                                const cv::Mat& right, const cv::Rect& roi_left,
+                                                int min_side,
+                                                const StereoSearchConfig& config = {});
 
 // Parses "near,far" in mm (the --depth-range option).
 [[nodiscard]] Result<StereoSearchConfig> parseDepthRange(const std::string& text);

@@ -51,7 +51,8 @@ namespace pulsetrack::vision {
 struct SessionConfig {
   TrackerConfig tracker;
   // roi.right empty: the right ROI and the depth tolerance are found in the pair at detection
-  // (findStereoRange over `search`'s depth range); depth_tolerance_mm is then not used.
+  // (findStereoRange over `search`'s depth range); depth_tolerance_mm is then not used. Both
+  // empty: the left ROI too (findStereoRoi: the largest well-textured region free of highlights).
   Roi roi;
   double depth_tolerance_mm = 20.0;
   StereoSearchConfig search;
