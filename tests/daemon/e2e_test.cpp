@@ -515,6 +515,19 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
   collect(4.0, n, id3);
   EXPECT_GT(n, 2);
   EXPECT_GT(id3, id2);
+  // No ROI at all (both zero on the wire): the daemon finds the tissue region itself.
+  {
+    pulsetrack_msgs_msg_dds__Command_ none{};
+    std::string rig_id = "rig-e2e", what = "set_roi";
+    none.rig_id = rig_id.data();
+    none.command = what.data();
+    none.request_id = 77;
+    ASSERT_TRUE(commands->write(&none));
+  }
+  int id4 = 0;
+  collect(4.0, n, id4);
+  EXPECT_GT(n, 2);
+  EXPECT_GT(id4, id3);
 
   // Garbage: an unknown command with control bytes, a bad ROI, and a flood of them.
   pulsetrack_msgs_msg_dds__Command_ c{};
