@@ -247,7 +247,7 @@ Result<TissueRegion> findTissueRegion(const cv::Mat& left, int min_side,
   std::vector<int> tissue_sum(static_cast<size_t>((cols + 1) * (rows + 1)), 0);
   std::vector<int> dark_sum(tissue_sum.size(), 0);
   const auto at = [&](std::vector<int>& v, int c, int r) -> int& {
-    return v[static_cast<size_t>(r * (cols + 1) + c)];
+    return v[static_cast<size_t>(r) * static_cast<size_t>(cols + 1) + static_cast<size_t>(c)];
   };
   for (int r = 0; r < rows; ++r) {
     for (int c = 0; c < cols; ++c) {
