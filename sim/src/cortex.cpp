@@ -368,12 +368,11 @@ cv::Mat imageTexture(const CortexSpec& spec, cv::Size size) {
              cv::Size(std::max(1, static_cast<int>(std::lround(grey.cols * px_per_image_px))),
                       std::max(1, static_cast<int>(std::lround(grey.rows * px_per_image_px)))),
              0, 0, px_per_image_px < 1.0 ? cv::INTER_AREA : cv::INTER_CUBIC);
-  // Mirror outwards until it covers `size` (each pass at most doubles it), then cut it centred.
-  while (scaled.cols < size.width || scaled.rows < size.height) {
-    const int bx = std::min(scaled.cols - 1, std::max(0, (size.width - scaled.cols + 1) / 2));
-    const int by = std::min(scaled.rows - 1, std::max(0, (size.height - scaled.rows + 1) / 2));
-    cv::copyMakeBorder(scaled, scaled, by, by, bx, bx, cv::BORDER_REFLECT_101);
-  }
+  // Mirrored outwards to cover `size` (REFLECT_101 repeats for borders wider than the image),
+  // then cut centred.
+  const int bx = std::max(0, (size.width - scaled.cols + 1) / 2);
+  const int by = std::max(0, (size.height - scaled.rows + 1) / 2);
+  if (bx > 0 || by > 0) cv::copyMakeBorder(scaled, scaled, by, by, bx, bx, cv::BORDER_REFLECT_101);
   const cv::Rect centre((scaled.cols - size.width) / 2, (scaled.rows - size.height) / 2, size.width,
                         size.height);
   cv::Mat out;
@@ -438,7 +437,9 @@ void CortexScene::buildTexture() {
              (1.0F + noise)
                  .mul(1.0F - static_cast<float>(spec_.vessel_contrast) * vessel_f)
                  .mul(1.0F - 0.3F * sulcus_f);
-  if (spec_.texture == "image") texture_ = imageTexture(spec_, size);
+  // (A spec made in code without the image keeps the procedural texture.)
+  if (spec_.texture == "image" && !spec_.texture_image_grey.empty())
+    texture_ = imageTexture(spec_, size);
   if (spec_.texture == "dots") {
     texture_.setTo(static_cast<float>(spec_.tissue_albedo));
     for (double v = -std::floor(extent / 4) * 4; v <= extent; v += 4.0) {

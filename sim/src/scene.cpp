@@ -240,8 +240,8 @@ vision::Result<SceneSpec> parseScene(const std::string& text, const std::filesys
     if (grey.empty() || grey.cols < 16 || grey.rows < 16) {
       return fail(fmt::format(
           "{}: cortex.texture_image {}: {}", file, s.cortex.texture_image.string(),
-          grey.empty() ? "cannot read it as an image (missing, or not PNG/JPEG/...; a real data "
-                         "set lives in ../shared/data beside the checkout)"
+          grey.empty() ? "cannot read it as an image (missing, or not a format OpenCV reads; the "
+                         "shipped real-texture scenes read ../shared/data beside the checkout)"
                        : "smaller than 16x16 px"));
     }
     s.cortex.texture_image_grey = grey;

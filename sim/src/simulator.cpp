@@ -96,8 +96,13 @@ vision::Result<void> writeSimulation(StereoSimulator& sim, const std::filesystem
   if (spec.kind == SceneKind::kCortex && spec.cortex.texture == "image") {
     // The recording carries the photograph its surface wears (pulsetrack evaluate reads the
     // scene from the recording): texture.png beside scene.toml, which names it.
-    if (!cv::imwrite((out / "texture.png").string(), spec.cortex.texture_image_grey))
-      return fail(fmt::format("{}: cannot write", (out / "texture.png").string()));
+    bool written = false;
+    try {
+      written = cv::imwrite((out / "texture.png").string(), spec.cortex.texture_image_grey);
+    } catch (const cv::Exception& e) {
+      return fail(fmt::format("{}: cannot write: {}", (out / "texture.png").string(), e.err));
+    }
+    if (!written) return fail(fmt::format("{}: cannot write", (out / "texture.png").string()));
     toml::table root;
     std::string syntax;
     if (!cfg::parseToml(scene_text, spec.source_path.string(), root, syntax)) return fail(syntax);

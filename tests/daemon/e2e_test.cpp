@@ -515,15 +515,10 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
   collect(4.0, n, id3);
   EXPECT_GT(n, 2);
   EXPECT_GT(id3, id2);
-  // No ROI at all (both zero on the wire): the daemon finds the tissue region itself.
-  {
-    pulsetrack_msgs_msg_dds__Command_ none{};
-    std::string rig_id = "rig-e2e", what = "set_roi";
-    none.rig_id = rig_id.data();
-    none.command = what.data();
-    none.request_id = 77;
-    ASSERT_TRUE(commands->write(&none));
-  }
+  // No ROI at all (both zero on the wire): the daemon finds the tissue region itself (a refusal
+  // would reach ctl: exit 1).
+  r = test::run(ctl + "set-roi");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
   int id4 = 0;
   collect(4.0, n, id4);
   EXPECT_GT(n, 2);
@@ -558,7 +553,9 @@ TEST(Daemon, CaptureCycleCommandsAndGarbage) {
   EXPECT_TRUE(refused_seen);
   EXPECT_GT(ok_after, 2);  // still tracking, still ok
   // ctl itself refuses what it cannot send.
-  r = test::run(ctl + "set-roi");
+  r = test::run(ctl + "set-roi --roi-left 1,2,3");
+  EXPECT_EQ(r.exit_code, 2) << r.output;
+  r = test::run(ctl + "set-roi --roi-right 1,2,30,40");
   EXPECT_EQ(r.exit_code, 2) << r.output;
   // A refusal reaches ctl from the daemon's health: exit 1 with the reason.
   r = test::run(ctl + "set-roi --roi-left 1300,1000,100,100 --roi-right 10,10,100,100");

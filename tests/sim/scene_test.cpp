@@ -6,6 +6,7 @@
 
 #include <cmath>
 #include <iostream>
+#include <opencv2/imgcodecs.hpp>
 #include <regex>
 
 #include "pulsetrack/sim/paper_rig.hpp"
@@ -233,6 +234,37 @@ TEST(SceneFile, ARealPhotographAsTheTexture) {
             << diff << " grey on average\n";
   EXPECT_GT(diff, 0.5);
   EXPECT_LT(diff, 8.0);
+}
+
+// A recording of a scene wearing a photograph carries it: texture.png beside scene.toml, which
+// names it and parses back to the same scene (evaluate reads the scene from the recording).
+TEST(SceneFile, ARecordingCarriesItsTexture) {
+  test::TempDir dir;
+  cv::Mat photo(48, 64, CV_8UC1);
+  cv::randu(photo, 40, 200);
+  ASSERT_TRUE(cv::imwrite(dir / "photo.png", photo));
+  const std::string text = "kind = \"cortex\"\nrig = \"" + configDir() +
+                           "/rigs/paper-rig-half.yaml\"\nframes = 2\nsupersample = 1\n"
+                           "[cortex]\ntexture = \"image\"\ntexture_image = \"photo.png\"\n"
+                           "texture_image_mm = 2.0\n[[cortex.motion]]\nname = \"beat\"\n"
+                           "amplitude_mm = 0.2\nfrequency_hz = 1.1\n"
+                           "harmonics = [{ multiple = 2.0, relative_amplitude = 0.3 }]\n";
+  auto spec = parseScene(text, dir.path() / "scene.toml");
+  ASSERT_TRUE(spec) << spec.error().message;
+  auto rig = vision::loadRig(spec->rig_path);
+  ASSERT_TRUE(rig) << rig.error().message;
+  StereoSimulator sim(*spec, *rig);  // 2 mm mirrored over the whole patch: no hang, no gap
+  ASSERT_TRUE(writeSimulation(sim, dir.path() / "rec"));
+  auto again = loadScene(dir.path() / "rec" / "scene.toml");
+  ASSERT_TRUE(again) << again.error().message;
+  EXPECT_EQ(again->cortex.texture, "image");
+  EXPECT_EQ(again->cortex.texture_image, dir.path() / "rec" / "texture.png");
+  EXPECT_EQ(cv::norm(again->cortex.texture_image_grey, photo, cv::NORM_INF), 0.0);
+  ASSERT_EQ(again->cortex.oscillations.size(), 1U);
+  EXPECT_DOUBLE_EQ(again->cortex.oscillations[0].frequency_hz, 1.1);
+  ASSERT_EQ(again->cortex.oscillations[0].harmonics.size(), 1U);
+  EXPECT_DOUBLE_EQ(again->cortex.oscillations[0].harmonics[0].relative_amplitude, 0.3);
+  EXPECT_EQ(again->frames, 2);
 }
 
 TEST(SceneFile, MissingFileIsNamed) {

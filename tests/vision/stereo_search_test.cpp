@@ -68,22 +68,29 @@ TEST(StereoSearch, FindsTheHeartWithoutAnRoi) {
   ASSERT_TRUE(region) << region.error().message;
   std::cerr << "hamlyn pair 1: " << region->summary() << "\n";
   const cv::Rect image(0, 0, pair->left.cols, pair->left.rows);
-  EXPECT_EQ(region->roi & image, region->roi);
-  EXPECT_GE(region->roi.area(), image.area() * 4 / 10);
+  EXPECT_EQ(region->found & image, region->found);
+  EXPECT_EQ(region->roi, region->found);  // not narrowed yet
+  EXPECT_GE(region->found.area(), image.area() * 4 / 10);
   // The heart the ROI was drawn over is (mostly) in it.
-  EXPECT_GE((region->roi & hamlyn::kRoi).area(), hamlyn::kRoi.area() * 7 / 10);
-  EXPECT_NE(region->summary().find("found: the largest well-textured region"), std::string::npos);
+  EXPECT_GE((region->found & hamlyn::kRoi).area(), hamlyn::kRoi.area() * 7 / 10);
+  EXPECT_NE(region->summary().find("found: the best well-textured region"), std::string::npos);
 
   auto found = findStereoRoi(pair->rig, pair->left, pair->right, cv::Rect(), 2 * kAffineSide);
   ASSERT_TRUE(found) << found.error().message;
+  std::cerr << "hamlyn pair 1: " << found->summary() << "\n";
   ASSERT_TRUE(found->region.has_value());
-  EXPECT_EQ(found->left, found->region.value_or(TissueRegion{}).roi);
-  // Narrowed: its left strip is not in the right view (disparity ~84 px), so the right ROI's
-  // outline (at the median depth) is within a pixel or two of the right image.
-  EXPECT_GE(found->right_outline.x, -2) << found->summary();
+  const TissueRegion narrowed = found->region.value_or(TissueRegion{});
+  EXPECT_EQ(found->left, narrowed.roi);
+  // Narrowed: the found region's left strip is not in the right view (disparity ~84 px): the
+  // left ROI lost it, and its outline in the right view (at the median depth) now starts within
+  // a pixel of the right image's edge.
+  EXPECT_EQ(narrowed.found & found->left, found->left);
+  EXPECT_GT(found->left.x, narrowed.found.x + 40);
+  EXPECT_GE(found->right_outline.x, -1.0) << found->summary();
+  EXPECT_LE(found->right_outline.x, 8.0) << found->summary();
   EXPECT_GE(found->disparity_lo_px, 70.0);
   EXPECT_LE(found->disparity_hi_px, 105.0);
-  EXPECT_NE(found->summary().find("left ROI "), std::string::npos);
+  EXPECT_NE(found->summary().find("narrowed to "), std::string::npos);
   // A given ROI is used as given.
   auto given = findStereoRoi(pair->rig, pair->left, pair->right, hamlyn::kRoi, 2 * kAffineSide);
   ASSERT_TRUE(given);

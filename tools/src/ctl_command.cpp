@@ -62,16 +62,21 @@ int runCtl(const CtlArgs& a) {
                      : static_cast<uint32_t>(
                            std::chrono::system_clock::now().time_since_epoch().count() & 0xffffff);
   if (a.command == "set-roi") {
-    // Without --roi-right the daemon finds it in the next pair (the left ROI's epipolar search).
-    if (a.roi_left.size() != 4 || (!a.roi_right.empty() && a.roi_right.size() != 4)) {
+    // Without --roi-right the daemon finds it in the next pair (the left ROI's epipolar search);
+    // without either, the left one too (the best well-textured region): all zero on the wire.
+    const bool left_ok = a.roi_left.empty() || a.roi_left.size() == 4;
+    const bool right_ok = a.roi_right.empty() || (a.roi_right.size() == 4 && !a.roi_left.empty());
+    if (!left_ok || !right_ok) {
       fmt::print(stderr,
-                 "ctl: set-roi needs --roi-left x,y,w,h (and --roi-right x,y,w,h, or none "
-                 "for the daemon to find it)\n");
+                 "ctl: set-roi takes --roi-left x,y,w,h and --roi-right x,y,w,h; either "
+                 "may be left out for the daemon to find it (the right one only with a "
+                 "left one)\n");
       return 2;
     }
     for (int i = 0; i < 4; ++i) {
-      c.roi_left[i] = a.roi_left[static_cast<size_t>(i)];
-      c.roi_right[i] = a.roi_right.empty() ? 0 : a.roi_right[static_cast<size_t>(i)];
+      const auto k = static_cast<size_t>(i);
+      c.roi_left[i] = a.roi_left.empty() ? 0 : a.roi_left[k];
+      c.roi_right[i] = a.roi_right.empty() ? 0 : a.roi_right[k];
     }
     c.depth_tolerance_m = a.depth_mm * 1e-3;
   }
@@ -124,7 +129,10 @@ CommandRunner addCtlCommand(CLI::App& app) {
                   "scripts/security); needed when the daemon's domain is secured");
   cmd->add_option("--rig", a->rig,
                   "The daemon's rig_id (a check: default, whichever rig the namespace has)");
-  cmd->add_option("--roi-left", a->roi_left, "set-roi: x,y,w,h (px)")->delimiter(',');
+  cmd->add_option("--roi-left", a->roi_left,
+                  "set-roi: x,y,w,h (px); default: the daemon finds the best well-textured "
+                  "region in the next pair")
+      ->delimiter(',');
   cmd->add_option("--roi-right", a->roi_right,
                   "set-roi: x,y,w,h (px); default: the daemon finds it in the next pair by "
                   "searching the left ROI's epipolar lines from 20 mm to 1 m")

@@ -61,9 +61,10 @@ void addCommon(CLI::App* cmd, CommonArgs& a) {
                   "pair (LEFT.yaml,RIGHT.yaml)")
       ->delimiter(',')
       ->expected(2);
-  cmd->add_option("--roi-left", a.roi_left,
-                  "Left ROI on the tissue: x,y,w,h (px); default: the largest well-textured region "
-                  "free of highlights in the first pair's left image (said as found)");
+  cmd->add_option(
+      "--roi-left", a.roi_left,
+      "Left ROI on the tissue: x,y,w,h (px); default: the best well-textured region (glare "
+      "and dark borders left out) in the first pair's left image, said as found");
   cmd->add_option("--roi-right", a.roi_right,
                   "The corresponding right ROI: x,y,w,h (px); default: found in the first pair "
                   "by searching the left ROI's epipolar lines over --depth-range");

@@ -219,24 +219,41 @@ Result<StereoRange> findStereoRange(const StereoRig& rig, const cv::Mat& left, c
         outline.emplace_back(static_cast<float>(q[0]), static_cast<float>(q[1]));
     }
   }
-  out.right_outline = outline.empty() ? cv::Rect() : cv::boundingRect(outline);
-  out.right = out.right_outline & frame;
+  if (!outline.empty()) {
+    float x0 = outline[0].x, x1 = x0, y0 = outline[0].y, y1 = y0;
+    for (const cv::Point2f& q : outline) {
+      x0 = std::min(x0, q.x);
+      x1 = std::max(x1, q.x);
+      y0 = std::min(y0, q.y);
+      y1 = std::max(y1, q.y);
+    }
+    out.right_outline = cv::Rect2d(x0, y0, x1 - x0, y1 - y0);
+  }
+  out.right = outline.empty() ? cv::Rect() : cv::boundingRect(outline) & frame;
   out.left = roi;
   return out;
 }
 
 std::string TissueRegion::summary() const {
   return fmt::format(
-      "left ROI {} found: the largest well-textured region free of highlights ({} of {} cells "
-      "tissue; {} flat, {} on highlights, {} dark)",
-      roiText(roi), tissue, cells, flat, highlights, dark);
+      "left ROI {} found: the best well-textured region, glare and dark borders left out ({} of "
+      "{} cells tissue; {} flat, {} on highlights, {} dark){}",
+      roiText(found), tissue, cells, flat, highlights, dark,
+      roi == found
+          ? std::string()
+          : fmt::format(", narrowed to {} (the part the right camera sees too)", roiText(roi)));
 }
 
 Result<TissueRegion> findTissueRegion(const cv::Mat& left, int min_side,
                                       const StereoSearchConfig& config) {
-  if (left.empty() || left.type() != CV_8UC1)
-    return fail("no ROI given and no grey image to find one in");
+  if (left.type() != CV_8UC1)
+    return fail(
+        fmt::format("no ROI given, and the left image is not 8-bit grey (type {})", left.type()));
   const int side = std::max(16, std::min(left.cols, left.rows) / 20);
+  if (left.cols < std::max(side, min_side) || left.rows < std::max(side, min_side)) {
+    return fail(fmt::format("no ROI given, and the left image ({}x{}) is too small to find one in",
+                            left.cols, left.rows));
+  }
   const int cols = left.cols / side, rows = left.rows / side;
   // The cells' grid is centred (the remainder split over both borders).
   const int x0 = (left.cols - cols * side) / 2, y0 = (left.rows - rows * side) / 2;
@@ -284,22 +301,25 @@ Result<TissueRegion> findTissueRegion(const cv::Mat& left, int min_side,
         for (int c1 = c0 + 1; c1 <= cols; ++c1) {
           const int w = c1 - c0, h = r1 - r0;
           if (w > kMaxAspect * h || h > kMaxAspect * w) continue;
+          if (w * side < min_side || h * side < min_side) continue;
           if (sum(dark_sum, c0, r0, c1, r1) > 0) break;  // wider only adds the dark cell
           const int good = sum(tissue_sum, c0, r0, c1, r1);
           const int score = good - kBadWeight * (w * h - good);
           if (score > best) {
             best = score;
-            out.roi = cv::Rect(x0 + c0 * side, y0 + r0 * side, w * side, h * side);
+            out.found = cv::Rect(x0 + c0 * side, y0 + r0 * side, w * side, h * side);
           }
         }
       }
     }
   }
-  if (out.roi.width < min_side || out.roi.height < min_side) {
+  out.roi = out.found;
+  if (best <= 0) {
     return fail(fmt::format(
-        "no ROI given, and no well-textured region of at least {}x{} px free of highlights in "
-        "the left image: of {} cells of {} px, {} are flat (grey SD under {:g}), {} on highlights "
-        "(>= {}), {} dark (mean under {:g}); give one with --roi-left",
+        "no ROI given, and no well-textured region of at least {}x{} px (glare and dark borders "
+        "left out) in the left image: of {} cells of {} px, {} are flat (grey SD under {:g}), {} "
+        "on highlights (>= {}), {} dark (mean under {:g}); give a left ROI (--roi-left, or "
+        "set_roi's roi_left)",
         min_side, min_side, out.cells, side, out.flat, config.region_texture, out.highlights,
         config.highlight, out.dark, config.region_dark));
   }
@@ -316,19 +336,23 @@ Result<StereoRange> findStereoRoi(const StereoRig& rig, const cv::Mat& left, con
   if (!range) return fail(fmt::format("{}; but {}", region->summary(), range.error().message));
   // Narrowed to what the right camera sees too: where the right ROI was cut at the image's
   // border, the left one loses as much on that side (the views map almost by a shift).
-  const cv::Rect& l = region->roi;
-  const cv::Rect& r = range->right_outline;
+  // The outline runs along the ROI's outer edges (x + width): it fits while within [0, size].
+  const cv::Rect l = region->roi;
+  const cv::Rect2d& r = range->right_outline;
   const cv::Size size = rig.right.imageSize();
-  const int cut_left = std::max(0, -r.x);
-  const int cut_right = std::max(0, r.x + r.width - size.width);
-  const int cut_top = std::max(0, -r.y);
-  const int cut_bottom = std::max(0, r.y + r.height - size.height);
+  const auto cut = [](double over) { return over > 0.0 ? static_cast<int>(std::ceil(over)) : 0; };
+  const int cut_left = cut(-r.x);
+  const int cut_right = cut(r.x + r.width - size.width);
+  const int cut_top = cut(-r.y);
+  const int cut_bottom = cut(r.y + r.height - size.height);
   if (cut_left + cut_right + cut_top + cut_bottom > 0) {
     const cv::Rect narrowed(l.x + cut_left, l.y + cut_top, l.width - cut_left - cut_right,
                             l.height - cut_top - cut_bottom);
     if (narrowed.width < min_side || narrowed.height < min_side) {
-      return fail(fmt::format("{}; but the right camera sees only {} of it: give --roi-left",
-                              region->summary(), roiText(range->right)));
+      return fail(fmt::format(
+          "{}; but the right camera sees only {} of it: give a left ROI (--roi-left, or "
+          "set_roi's roi_left)",
+          region->summary(), roiText(range->right)));
     }
     region->roi = narrowed;
     range = findStereoRange(rig, left, right, narrowed, config);

@@ -36,15 +36,16 @@ struct StereoSearchConfig {
 
 // The left ROI found in an image when none is given: the largest rectangle of tissue cells.
 struct TissueRegion {
-  cv::Rect roi;
+  cv::Rect found;  // the best region of tissue cells
+  cv::Rect roi;    // ... narrowed to what the right camera sees too (findStereoRoi)
   int cells = 0, tissue = 0, flat = 0, highlights = 0, dark = 0;
-  // "left ROI 40,16,300,256 found: the largest well-textured region free of highlights (...)".
+  // "left ROI 4,32,304,256 found: the best well-textured region (...), narrowed to ...".
   [[nodiscard]] std::string summary() const;
 };
 
 struct StereoRange {
   cv::Rect right;             // the right ROI: the left ROI's surface, at the median depth
-  cv::Rect right_outline;     // ... before it was cut to the right image
+  cv::Rect2d right_outline;   // ... before it was cut to the right image (its float extent)
   double depth_mm = 0.0;      // median depth of the matches
   double tolerance_mm = 0.0;  // the tracker's depth tolerance: covers their spread
   double depth_lo_mm = 0.0;   // 5th and 95th percentiles of the matches' depths
@@ -66,10 +67,11 @@ struct StereoRange {
                                                   const cv::Mat& right, const cv::Rect& roi_left,
                                                   const StereoSearchConfig& config = {});
 
-// The largest well-textured region free of highlights and dark borders (the config's region_*
-// keys), for a user who gives no ROI. Fails, saying what the image is made of, when no region
-// of at least min_side x min_side px is found. Instruments are not recognized as such (only
-// their highlights and flat metal are left out).
+// The best well-textured region, glare and dark borders left out (the config's region_* keys),
+// for a user who gives no ROI: the rectangle of cells, at least min_side px a side, with the most
+// tissue cells less 3 per other cell (glare or flat; a dark cell is never inside). Fails, saying
+// what the image is made of, when there is none. Instruments are not recognized as such (only
+// their glare and flat metal count against a cell).
 [[nodiscard]] Result<TissueRegion> findTissueRegion(const cv::Mat& left, int min_side,
                                                     const StereoSearchConfig& config = {});
 
