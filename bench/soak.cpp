@@ -350,7 +350,9 @@ int main(int argc, char** argv) try {
       for (int i = 0; i < 1000; ++i) {
         c.request_id = ++request;
         c.command = const_cast<char*>(verbs[i % 3]);
-        for (int k = 0; k < 4; ++k) c.roi_left[k] = c.roi_right[k] = 0;  // malformed
+        // Malformed: a negative width (all zero is valid since issue 32: "find the ROI").
+        for (int k = 0; k < 4; ++k) c.roi_left[k] = c.roi_right[k] = 0;
+        c.roi_left[2] = -5;
         if (command->write(&c)) {  // a write that timed out (flow control) was not sent
           ++sent;
           valid += i % 3 == 0 ? 1 : 0;
