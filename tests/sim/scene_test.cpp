@@ -6,8 +6,10 @@
 
 #include <cmath>
 #include <iostream>
+#include <opencv2/core/persistence.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <regex>
+#include <vector>
 
 #include "pulsetrack/sim/paper_rig.hpp"
 #include "test_util.hpp"
@@ -185,6 +187,38 @@ TEST(SceneFile, TheRightCameraCanDiffer) {
               "scene.toml:4: unknown key 'camera.right.gainn'");
   expectError(kHead + "[camera.right]\ngain = 9\n",
               "scene.toml:4: camera.right.gain: expected a number in \\[0.2, 5\\]");
+}
+
+// The half-resolution rig as OpenCV's own FileStorage reads it (what a user's OpenCV tools and
+// the real-texture scenes' consumers meet; pulsetrack's reader is yaml-cpp): the paper rig's
+// lenses and baseline at 680x512, focal lengths halved, principal points (c + 0.5) / 2 - 0.5.
+TEST(SceneFile, HalfResolutionRigIsThePaperRigHalvedForOpenCv) {
+  cv::FileStorage full(configDir() + "/rigs/paper-rig.yaml", cv::FileStorage::READ);
+  cv::FileStorage half(configDir() + "/rigs/paper-rig-half.yaml", cv::FileStorage::READ);
+  ASSERT_TRUE(full.isOpened());
+  ASSERT_TRUE(half.isOpened());
+  std::vector<int> size;
+  half["image_size"] >> size;
+  EXPECT_EQ(size, (std::vector<int>{680, 512}));
+  for (const char* m : {"M1", "M2"}) {
+    cv::Mat a, b;
+    full[m] >> a;
+    half[m] >> b;
+    ASSERT_EQ(a.size(), cv::Size(3, 3)) << m;
+    ASSERT_EQ(b.size(), cv::Size(3, 3)) << m;
+    EXPECT_NEAR(b.at<double>(0, 0), a.at<double>(0, 0) / 2.0, 1e-9) << m;
+    EXPECT_NEAR(b.at<double>(1, 1), a.at<double>(1, 1) / 2.0, 1e-9) << m;
+    EXPECT_NEAR(b.at<double>(0, 2), (a.at<double>(0, 2) + 0.5) / 2.0 - 0.5, 1e-9) << m;
+    EXPECT_NEAR(b.at<double>(1, 2), (a.at<double>(1, 2) + 0.5) / 2.0 - 0.5, 1e-9) << m;
+  }
+  for (const char* m : {"D1", "D2", "R", "T"}) {
+    cv::Mat a, b;
+    full[m] >> a;
+    half[m] >> b;
+    ASSERT_FALSE(a.empty()) << m;
+    ASSERT_EQ(a.size(), b.size()) << m;
+    EXPECT_EQ(cv::norm(a, b, cv::NORM_INF), 0.0) << m;
+  }
 }
 
 // Truth on real texture (issue 32): the shipped real-texture scenes wear a real in-vivo frame

@@ -18,6 +18,16 @@
 namespace pulsetrack {
 namespace {
 
+// Ok features per pair of a track CSV (pairs with none ok included, as 0), in frame order.
+std::map<long, int> okPerPair(const std::string& csv) {
+  std::map<long, int> ok;
+  auto rows = record::readTrackCsv(csv);
+  EXPECT_TRUE(rows) << rows.error().message;
+  if (!rows) return ok;
+  for (const auto& row : *rows) ok[row.frame] += row.status == "ok" ? 1 : 0;
+  return ok;
+}
+
 TEST(RealVideo, EndoscopeSideBySideWithItsOwnCalibrationAndALeftRoiOnly) {
   const auto dir = data::shared("surgt-labelling-sample");
   PULSETRACK_SKIP_WITHOUT_DATA(dir);
@@ -32,11 +42,7 @@ TEST(RealVideo, EndoscopeSideBySideWithItsOwnCalibrationAndALeftRoiOnly) {
       std::regex_search(r.output, std::regex("stereo search +disparity -?[0-9]+ to -?[0-9]+ "
                                              "px, depth [0-9.]+ to [0-9.]+ mm")))
       << r.output;
-  auto rows = record::readTrackCsv(out / "t.csv");
-  ASSERT_TRUE(rows) << rows.error().message;
-  std::map<long, int> ok;
-  for (const auto& row : *rows)
-    if (row.status == "ok") ++ok[row.frame];
+  const std::map<long, int> ok = okPerPair(out / "t.csv");
   ASSERT_EQ(ok.size(), 10U);  // every one of the 10 pairs
   for (const auto& [frame, n] : ok) EXPECT_GE(n, 90) << "pair " << frame;
 
@@ -72,11 +78,7 @@ TEST(RealVideo, EndoscopeWithoutAnyRoi) {
       r.output, std::regex("left ROI [0-9]+,[0-9]+,[0-9]+,[0-9]+ found: the best well-textured "
                            "region")))
       << r.output;
-  auto rows = record::readTrackCsv(out / "t.csv");
-  ASSERT_TRUE(rows) << rows.error().message;
-  std::map<long, int> ok;
-  for (const auto& row : *rows)
-    if (row.status == "ok") ++ok[row.frame];
+  const std::map<long, int> ok = okPerPair(out / "t.csv");
   ASSERT_EQ(ok.size(), 10U);
   for (const auto& [frame, n] : ok) EXPECT_GE(n, 90) << "pair " << frame;
   // --roi-right alone is refused.
@@ -89,18 +91,15 @@ TEST(RealVideo, EndoscopeWithoutAnyRoi) {
   // The Hamlyn heart without an ROI (300 pairs, 25 fps assumed): at least as many features at
   // the first detection and ok per pair as with the hand-drawn ROI (33 and 13; measured 46, 15).
   const auto heart = data::shared("hamlyn-invivo-tpsnet");
-  if (!data::absent(heart).empty()) GTEST_SKIP() << data::absent(heart);
+  PULSETRACK_SKIP_WITHOUT_DATA(heart);
   r = test::run(test::cli() + " track -q --rig " + (heart / "rig.yaml").string() + " --left '" +
                 (heart / "left_*.png").string() + "' --right '" + (heart / "right_*.png").string() +
                 "' --fps 25 --out " + (out / "h.csv"));
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  rows = record::readTrackCsv(out / "h.csv");
-  ASSERT_TRUE(rows) << rows.error().message;
-  ok.clear();
-  for (const auto& row : *rows) ok[row.frame] += row.status == "ok" ? 1 : 0;
+  const std::map<long, int> heart_ok = okPerPair(out / "h.csv");
   std::vector<int> counts;
-  counts.reserve(ok.size());
-  for (const auto& [frame, n] : ok) counts.push_back(n);
+  counts.reserve(heart_ok.size());
+  for (const auto& [frame, n] : heart_ok) counts.push_back(n);
   ASSERT_FALSE(counts.empty());
   const int first = counts.front();
   std::sort(counts.begin(), counts.end());

@@ -9,9 +9,11 @@
 #include <opencv2/imgcodecs.hpp>
 #include <optional>
 #include <string>
+#include <utility>
 
 #include "data_paths.hpp"
 #include "pulsetrack/vision/stereo_rig.hpp"
+#include "test_util.hpp"
 
 namespace pulsetrack::vision::hamlyn {
 
@@ -49,5 +51,17 @@ inline std::optional<FirstPair> firstPair() {
   }
   return p;
 }
+
+// A test on pair 1: skipped (loudly) without the data set, a failure when it cannot be read.
+class PairOne : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    PULSETRACK_SKIP_WITHOUT_DATA(dir());
+    auto loaded = firstPair();
+    if (!loaded) GTEST_FAIL() << "pair 1 of " << dir() << " unreadable";
+    pair_ = std::move(*loaded);
+  }
+  FirstPair pair_;
+};
 
 }  // namespace pulsetrack::vision::hamlyn

@@ -16,14 +16,12 @@
 namespace pulsetrack::vision {
 namespace {
 
-TEST(StereoSearch, FindsTheBeatingHeartInTheRightView) {
-  PULSETRACK_SKIP_WITHOUT_DATA(hamlyn::dir());
-  const auto loaded = hamlyn::firstPair();
-  if (!loaded) return;  // firstPair() said why
-  const hamlyn::FirstPair* pair = &*loaded;
-  const StereoRig* rig = &pair->rig;
-  const cv::Mat& left = pair->left;
-  const cv::Mat& right = pair->right;
+using StereoSearchOnTheHeart = hamlyn::PairOne;
+
+TEST_F(StereoSearchOnTheHeart, FindsTheBeatingHeartInTheRightView) {
+  const StereoRig* rig = &pair_.rig;
+  const cv::Mat& left = pair_.left;
+  const cv::Mat& right = pair_.right;
   const cv::Rect roi = hamlyn::kRoi;
   auto found = findStereoRange(*rig, left, right, roi);
   ASSERT_TRUE(found) << found.error().message;
@@ -59,15 +57,11 @@ TEST(StereoSearch, FindsTheBeatingHeartInTheRightView) {
 
 // No ROI at all (issue 32): the largest well-textured region free of highlights, narrowed to
 // what the right camera sees too.
-TEST(StereoSearch, FindsTheHeartWithoutAnRoi) {
-  PULSETRACK_SKIP_WITHOUT_DATA(hamlyn::dir());
-  const auto loaded = hamlyn::firstPair();
-  if (!loaded) return;  // firstPair() said why
-  const hamlyn::FirstPair* pair = &*loaded;
-  auto region = findTissueRegion(pair->left, 2 * kAffineSide);
+TEST_F(StereoSearchOnTheHeart, FindsTheHeartWithoutAnRoi) {
+  auto region = findTissueRegion(pair_.left, 2 * kAffineSide);
   ASSERT_TRUE(region) << region.error().message;
   std::cerr << "hamlyn pair 1: " << region->summary() << "\n";
-  const cv::Rect image(0, 0, pair->left.cols, pair->left.rows);
+  const cv::Rect image(0, 0, pair_.left.cols, pair_.left.rows);
   EXPECT_EQ(region->found & image, region->found);
   EXPECT_EQ(region->roi, region->found);  // not narrowed yet
   EXPECT_GE(region->found.area(), image.area() * 4 / 10);
@@ -75,7 +69,7 @@ TEST(StereoSearch, FindsTheHeartWithoutAnRoi) {
   EXPECT_GE((region->found & hamlyn::kRoi).area(), hamlyn::kRoi.area() * 7 / 10);
   EXPECT_NE(region->summary().find("found: the best well-textured region"), std::string::npos);
 
-  auto found = findStereoRoi(pair->rig, pair->left, pair->right, cv::Rect(), 2 * kAffineSide);
+  auto found = findStereoRoi(pair_.rig, pair_.left, pair_.right, cv::Rect(), 2 * kAffineSide);
   ASSERT_TRUE(found) << found.error().message;
   std::cerr << "hamlyn pair 1: " << found->summary() << "\n";
   ASSERT_TRUE(found->region.has_value());
@@ -92,7 +86,7 @@ TEST(StereoSearch, FindsTheHeartWithoutAnRoi) {
   EXPECT_LE(found->disparity_hi_px, 105.0);
   EXPECT_NE(found->summary().find("narrowed to "), std::string::npos);
   // A given ROI is used as given.
-  auto given = findStereoRoi(pair->rig, pair->left, pair->right, hamlyn::kRoi, 2 * kAffineSide);
+  auto given = findStereoRoi(pair_.rig, pair_.left, pair_.right, hamlyn::kRoi, 2 * kAffineSide);
   ASSERT_TRUE(given);
   EXPECT_EQ(given->left, hamlyn::kRoi);
   EXPECT_FALSE(given->region.has_value());
