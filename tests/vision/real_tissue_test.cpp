@@ -69,6 +69,38 @@ TEST_F(RealTissueOnTheHeart, NeighbourGatesFitToTheBeatingHeart) {
   EXPECT_EQ(ok, *ok_fit);
 }
 
+// The heart's 360x288 video is blurred: the stereo match's affine refinement does not settle on
+// a third of pair 1's matches (28 of 85). Refined in translation instead, as many of them as the
+// other gates accept are taken, because the affine-refined ones do not fill the ceiling (on
+// renders and photographs they do, and the fallback changes nothing there: bench/gate_eval).
+TEST_F(RealTissueOnTheHeart, UnsettledStereoMatchesAreRefinedInTranslationWhereFewPass) {
+  auto found = findStereoRange(pair_.rig, pair_.left, pair_.right, hamlyn::kRoi);
+  ASSERT_TRUE(found) << found.error().message;
+  const Roi roi{hamlyn::kRoi, found->right};
+  TrackerConfig affine_only;
+  affine_only.stereo_translation_fallback = false;
+  StereoTracker strict(pair_.rig, affine_only);
+  auto n_strict = strict.initialize(pair_.left, pair_.right, roi, found->tolerance_mm);
+  ASSERT_TRUE(n_strict) << n_strict.error().message;
+  EXPECT_EQ(strict.fittedGates().stereo_translation, 0);
+  StereoTracker fallback(pair_.rig, TrackerConfig{});
+  auto n = fallback.initialize(pair_.left, pair_.right, roi, found->tolerance_mm);
+  ASSERT_TRUE(n) << n.error().message;
+  const FittedGates& g = fallback.fittedGates();
+  std::cout << "hamlyn pair 1: " << *n_strict << " ok with the affine refinement only, " << *n
+            << " with the translation fallback: " << g.summary() << "\n";
+  EXPECT_GT(g.stereo_unsettled, 20);
+  EXPECT_GE(g.stereo_translation, 5);
+  EXPECT_GE(*n, *n_strict + 5);
+  EXPECT_NE(g.summary().find("refined in translation"), std::string::npos) << g.summary();
+  // Still on the rig's rows (the stereo search's measured offset, +-1 px).
+  for (const Feature& f : fallback.features()) {
+    if (f.status != FeatureStatus::kOk) continue;
+    EXPECT_NEAR(pair_.rig.epipolarOffset(f.left, f.right), found->vertical_px, 1.0)
+        << "feature " << f.id;
+  }
+}
+
 // All 300 pairs as `pulsetrack track --fps 25 --roi-left 120,60,200,180` runs them (the daemon's
 // session: detection, re-detection, tracking). Before: 0 ok from pair 17 on, for good (a fill
 // re-detection with nothing ok kept the lost features' stale positions, found nothing, and
@@ -106,10 +138,12 @@ TEST(RealTissue, TheBeatingHeartIsTrackedThroughTheWholeSequence) {
   std::nth_element(vertical.begin(), vertical.begin() + static_cast<long>(vertical.size() / 2),
                    vertical.end());
   const double vertical_median = vertical[vertical.size() / 2];
-  std::cout << "hamlyn, 300 pairs: ok per pair median " << median << ", min " << sorted.front()
+  std::cout << "hamlyn, 300 pairs: " << ok_per_pair.front()
+            << " ok at the first pair, ok per pair median " << median << ", min " << sorted.front()
             << ", max " << sorted.back() << ", pairs with none " << none
             << "; ok matches' vertical disparity median " << vertical_median << " px\n";
   EXPECT_EQ(none, 0);
+  EXPECT_GE(ok_per_pair.front(), 40);  // 33 before the translation fallback
   EXPECT_GE(median, 8);
   EXPECT_LE(vertical_median, 1.0);
 }

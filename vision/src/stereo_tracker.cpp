@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <limits>
+#include <numeric>
 #include <opencv2/imgproc.hpp>
 
 #include "pulsetrack/vision/triangulation.hpp"
@@ -79,10 +80,17 @@ std::string FittedGates::summary() const {
                                 used * scale, unit, configured * scale, unit)
                   : fmt::format("{:.2f}{} (as configured)", used * scale, unit);
   };
-  return fmt::format("sheen {}, epipolar spread {}",
-                     one(max_sheen, configured_sheen, sheen_fitted, 100.0, " %"),
-                     one(max_epipolar_spread_px, configured_epipolar_spread_px,
-                         epipolar_spread_fitted, 1.0, " px"));
+  std::string text = fmt::format("sheen {}, epipolar spread {}",
+                                 one(max_sheen, configured_sheen, sheen_fitted, 100.0, " %"),
+                                 one(max_epipolar_spread_px, configured_epipolar_spread_px,
+                                     epipolar_spread_fitted, 1.0, " px"));
+  if (stereo_translation > 0) {
+    text += fmt::format(
+        "; the stereo match's affine refinement did not settle on {} matches: {} features "
+        "refined in translation (blurred or interlaced video?)",
+        stereo_unsettled, stereo_translation);
+  }
+  return text;
 }
 
 namespace {
@@ -649,6 +657,19 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
         c.ncc = ar.ncc;
         s.stereo_warp = ar.warp.a;
         refined = true;
+      } else if (config_.stereo_translation_fallback && config_.detector == Detector::kHarris) {
+        ++gates_.stereo_unsettled;
+        ShiftTemplate stereo;
+        if (stereo.set(left.data, left.step, left.cols, left.rows, c.left)) {
+          ar = stereo.refine(right.data, right.step, right.cols, right.rows, c.right,
+                             kDetectIterations, kDetectEpsilonPx);
+          if (ar.converged && cv::norm(ar.warp.centre - c.right) < 1.5) {
+            c.right = ar.warp.centre;
+            c.ncc = ar.ncc;
+            s.stereo_translation = true;
+            refined = true;
+          }
+        }
       }
     }
     const uint8_t* tl = nullptr;
@@ -783,7 +804,8 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
     for (size_t i = from; i < features_.size(); ++i) {
       near.clear();
       for (size_t j = 0; j < features_.size(); ++j) {
-        if (j != i && ratios[j] > 0.0)
+        // The translation-refined ones (stereo_translation_fallback) are judged, never judges.
+        if (j != i && ratios[j] > 0.0 && !states_[j].stereo_translation)
           near.emplace_back(cv::norm(features_[j].left - features_[i].left), j);
       }
       const size_t k = std::min<size_t>(near.size(), kGainNeighbours);
@@ -808,10 +830,16 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
                                                  : std::numeric_limits<double>::infinity());
       spread_abs.push_back(std::abs(spread[i]));
     }
+    std::vector<double> sheen_fit, spread_fit;
+    for (size_t i = from; i < features_.size(); ++i) {
+      if (states_[i].stereo_translation) continue;
+      sheen_fit.push_back(sheen[i - from]);
+      spread_fit.push_back(spread_abs[i - from]);
+    }
     gates_.sheen_fitted |=
-        fitThreshold(sheen, config_.fit_sigmas, config_.max_sheen_bound, gates_.max_sheen);
+        fitThreshold(sheen_fit, config_.fit_sigmas, config_.max_sheen_bound, gates_.max_sheen);
     gates_.epipolar_spread_fitted |=
-        fitThreshold(spread_abs, config_.fit_sigmas, config_.max_epipolar_spread_bound_px,
+        fitThreshold(spread_fit, config_.fit_sigmas, config_.max_epipolar_spread_bound_px,
                      gates_.max_epipolar_spread_px);
     size_t kept = from;
     for (size_t i = from; i < features_.size(); ++i) {
@@ -841,19 +869,46 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   // Match in rounds: as many as the ceiling (or until fill), the neighbour gates (sheen, epipolar
   // spread) on them, and again from the next corner while fewer than min_fill of the ceiling passed
   // both.
+  // The translation-refined ones (stereo_translation_fallback) count only where the others do
+  // not fill the ceiling: they are the first dropped over it.
+  const auto passed = [&] {
+    return static_cast<size_t>(
+        std::count_if(states_.begin() + static_cast<long>(first_new), states_.end(),
+                      [](const State& st) { return !st.stereo_translation; }));
+  };
   size_t next = 0;
   for (size_t judged = first_new;; judged = features_.size()) {
     for (; next < n_chosen; ++next) {
-      const size_t passed = features_.size() - first_new;
-      if (passed >= slack || (matched >= capacity && passed >= fill_target)) break;
+      const size_t n = passed();
+      if (n >= slack || (matched >= capacity && n >= fill_target)) break;
       ++matched;
       match(chosen[next], false);
     }
     neighbourGates(judged);
-    if (next >= n_chosen || features_.size() - first_new >= fill_target) break;
+    if (next >= n_chosen || passed() >= fill_target) break;
   }
   for (size_t m = n_chosen; m < chosen.size(); ++m) match(chosen[m], true);  // evaluation only
   size_t kept = features_.size();
+  if (kept > first_new + capacity) {
+    // Over the ceiling: the translation-refined ones go last (the order kept otherwise).
+    std::vector<size_t> order(kept - first_new);
+    std::iota(order.begin(), order.end(), first_new);
+    std::stable_partition(order.begin(), order.end(),
+                          [&](size_t i) { return !states_[i].stereo_translation; });
+    std::vector<Feature> f(order.size());
+    std::vector<State> st(order.size());
+    std::vector<size_t> cand(order.size());
+    for (size_t k = 0; k < order.size(); ++k) {
+      f[k] = features_[order[k]];
+      f[k].id = next_id_ + static_cast<int>(k);
+      st[k] = states_[order[k]];
+      cand[k] = candidate_of_feature[order[k]];
+    }
+    std::copy(f.begin(), f.end(), features_.begin() + static_cast<long>(first_new));
+    std::copy(st.begin(), st.end(), states_.begin() + static_cast<long>(first_new));
+    std::copy(cand.begin(), cand.end(),
+              candidate_of_feature.begin() + static_cast<long>(first_new));
+  }
   // Over the ceiling: the last matched (every cell's weakest) are dropped, their candidates too
   // (never tracked, as if not matched).
   std::vector<size_t> dropped;
@@ -861,6 +916,9 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   kept = std::min(kept, first_new + capacity);
   features_.resize(kept);
   states_.resize(kept);
+  gates_.stereo_translation =
+      static_cast<int>(std::count_if(states_.begin() + static_cast<long>(first_new), states_.end(),
+                                     [](const State& st) { return st.stereo_translation; }));
   // A new feature's epoch position: where it is, less its ok neighbours' motion since the
   // epoch (the first features' own: their epoch is their detection).
   for (size_t i = first_new; i < features_.size(); ++i) {
