@@ -68,6 +68,11 @@ int main(int argc, char** argv) try {
   sweep("--stereo-ramp", config.stereo_ramp,
         "The stereo match models an intensity ramp across the patch (true/false)");
   sweep("--min-nmi", config.min_nmi, "NMI gate");
+  sweep("--template-refresh", config.template_refresh,
+        "Recent templates taken per pair (0: the frame-0 templates only)");
+  sweep("--stereo-translation-fallback", config.stereo_translation_fallback,
+        "Unsettled affine stereo matches refined in translation where the ceiling is not filled "
+        "(true/false)");
   sweep("--max-epipolar", config.max_epipolar_px, "Epipolar gate, px");
   sweep("--max-ncc-drop", config.max_ncc_drop, "NCC drop gate");
   sweep("--min-distance", config.min_distance_px, "Corners at least this far apart, px");

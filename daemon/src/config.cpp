@@ -250,6 +250,8 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     c.tracker.refinement = s.boolean("refinement", c.tracker.refinement);
     c.tracker.stereo_refresh =
         s.integer("stereo_refresh", c.tracker.stereo_refresh, 0, c.tracker.max_features);
+    c.tracker.template_refresh =
+        s.integer("template_refresh", c.tracker.template_refresh, 0, c.tracker.max_features);
     s.finish();
   }
   if (const toml::table* t = r.table("field")) {

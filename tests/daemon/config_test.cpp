@@ -25,6 +25,7 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_EQ(c->capture.cpu, -1);
   EXPECT_DOUBLE_EQ(c->fps, 30.0);
   EXPECT_EQ(c->tracker.stereo_refresh, 25);
+  EXPECT_EQ(c->tracker.template_refresh, 25);
   EXPECT_EQ(c->sim_faults.missing_trigger_every + c->sim_faults.left_drop_every +
                 c->sim_faults.right_miss_every,
             0);  // no injected faults as shipped
@@ -193,6 +194,8 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError("[recorder]\nslots = 1\n", "recorder.slots");
   expectError("[tracker]\nmax_features = 50\nstereo_refresh = 60\n",
               "pulsetrackd.toml:3: tracker.stereo_refresh");
+  expectError("[tracker]\nmax_features = 50\ntemplate_refresh = 51\n",
+              "pulsetrackd.toml:3: tracker.template_refresh");
   expectError("[source.faults]\nright_drop_every = 3\n",
               "unknown key 'source.faults.right_drop_every'");
   expectError(

@@ -35,6 +35,7 @@ struct CommonArgs {
   std::string depth_range;
   int max_features = 100;
   int stereo_refresh = vision::TrackerConfig{}.stereo_refresh;
+  int template_refresh = vision::TrackerConfig{}.template_refresh;
   bool no_refinement = false;
   std::string detector = "harris";
   std::string out;
@@ -43,6 +44,7 @@ struct CommonArgs {
     vision::TrackerConfig c;
     c.max_features = max_features;
     c.stereo_refresh = stereo_refresh;
+    c.template_refresh = template_refresh;
     c.refinement = !no_refinement;
     c.detector = detector == "blobs" ? vision::Detector::kDarkBlobs : vision::Detector::kHarris;
     return c;
@@ -82,6 +84,12 @@ void addCommon(CLI::App* cmd, CommonArgs& a) {
   cmd->add_option("--stereo-refresh", a.stereo_refresh,
                   "Features whose stereo match is taken again per pair and averaged (takes the "
                   "first pair's sensor noise out of the positions; 0: off)")
+      ->check(CLI::Range(0, 1000))
+      ->capture_default_str();
+  cmd->add_option("--template-refresh", a.template_refresh,
+                  "Features per pair whose look becomes their recent template, searched where the "
+                  "first pair's template finds nothing (tissue that changes its look: a beating "
+                  "heart; 0: off)")
       ->check(CLI::Range(0, 1000))
       ->capture_default_str();
   cmd->add_flag("--no-refinement", a.no_refinement,

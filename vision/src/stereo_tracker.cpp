@@ -951,7 +951,7 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   return fill ? static_cast<int>(features_.size()) : detected_ok_;
 }
 
-bool StereoTracker::searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s,
+bool StereoTracker::searchCamera(const cv::Mat& img, const NccTemplate& t, const cv::Vec2d& last,
                                  cv::Vec2d& pos, double& ncc, int radius) noexcept {
   const int side = 2 * radius + 1;
   const int cx = static_cast<int>(std::lround(last[0]));
@@ -963,7 +963,7 @@ bool StereoTracker::searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& l
   Peak peak;
   bool climbed = false;
   for (int step = 0; step <= radius; ++step) {
-    if (!searchWindow(img, s.ncc[cam], px - 1, py - 1, 3, 3, scores_.data(), scratch_.data(),
+    if (!searchWindow(img, t, px - 1, py - 1, 3, 3, scores_.data(), scratch_.data(),
                       scratch_.size())) {
       break;
     }
@@ -980,8 +980,8 @@ bool StereoTracker::searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& l
     px += peak.i - 1;
     py += peak.j - 1;
   } else {
-    if (!searchWindow(img, s.ncc[cam], cx - radius, cy - radius, side, side, scores_.data(),
-                      scratch_.data(), scratch_.size())) {
+    if (!searchWindow(img, t, cx - radius, cy - radius, side, side, scores_.data(), scratch_.data(),
+                      scratch_.size())) {
       return false;
     }
     peak = findPeak(scores_.data(), side, side);
@@ -995,32 +995,52 @@ bool StereoTracker::searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& l
   return true;
 }
 
-Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
-                                double& nmi, int radius) noexcept {
-  const cv::Vec2d last = at;
-  cv::Vec2d pos = last;
-  bool found = false;
+Gate StereoTracker::locate(const cv::Mat& img, const NccTemplate& t, const ShiftTemplate& shift,
+                           const cv::Vec2d& last, cv::Vec2d& pos, double& ncc,
+                           int radius) noexcept {
   if (config_.refinement) {
     // Frame-to-frame motion is mostly under a pixel, inside the translation refinement's basin:
     // refine straight from the last position, and search with NCC only when that fails (a
     // jump, a re-acquisition after an occlusion, a poor match).
-    const AffineResult ar = s.shift[cam].refine(img.data, img.step, img.cols, img.rows, last);
+    const AffineResult ar = shift.refine(img.data, img.step, img.cols, img.rows, last);
     if (ar.converged && ar.ncc >= config_.min_ncc && cv::norm(ar.warp.centre - last) <= radius) {
       pos = ar.warp.centre;
       ncc = ar.ncc;
-      found = true;
+      return Gate::kNone;
     }
   }
-  if (!found) {
-    if (!searchCamera(cam, img, last, s, pos, ncc, radius)) return Gate::kNoPeak;
-    if (config_.refinement) {
-      const AffineResult ar = s.shift[cam].refine(img.data, img.step, img.cols, img.rows, pos);
-      // Not converged: an NCC-peak or loosely converged fallback kept more of the Hamlyn heart
-      // but cost cortex-hard 0.0363 -> 0.0383 / 0.0372 mm of 3D RMS (gate_eval).
-      if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return Gate::kNotConverged;
-      pos = ar.warp.centre;
+  if (!searchCamera(img, t, last, pos, ncc, radius)) return Gate::kNoPeak;
+  if (config_.refinement) {
+    const AffineResult ar = shift.refine(img.data, img.step, img.cols, img.rows, pos);
+    // Not converged: an NCC-peak or loosely converged fallback kept more of the Hamlyn heart
+    // but cost cortex-hard 0.0363 -> 0.0383 / 0.0372 mm of 3D RMS (gate_eval).
+    if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return Gate::kNotConverged;
+    pos = ar.warp.centre;
+  }
+  return Gate::kNone;
+}
+
+Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
+                                double& nmi, int radius) noexcept {
+  const cv::Vec2d last = at;
+  cv::Vec2d pos = last;
+  const auto c = static_cast<size_t>(cam);
+  Gate found = locate(img, s.ncc[cam], s.shift[cam], last, pos, ncc, radius);
+  s.anchored[c] = found == Gate::kNone && ncc >= config_.min_ncc;
+  // Where the frame-0 template finds nothing (tissue that deforms: a beating heart), its look
+  // in a recent pair where the frame-0 template did find it (refreshTemplates()). One hop from
+  // a frame-0 match, never a chain: the error does not add up over updates.
+  if (!s.anchored[c] && s.recent[c]) {
+    cv::Vec2d p2 = last;
+    double n2 = 0.0;
+    if (locate(img, s.recent_ncc[c], s.recent_shift[c], last, p2, n2, radius) == Gate::kNone &&
+        n2 >= config_.min_ncc) {
+      pos = config_.refinement ? p2 : p2 + s.recent_offset[c];
+      ncc = n2;
+      found = Gate::kNone;
     }
   }
+  if (found != Gate::kNone) return found;
   const uint8_t* patch = nullptr;
   if (!patchAt(img, pos, patch)) return Gate::kImageBorder;
   // NMI between the frame-0 template and the patch at the match.
@@ -1181,6 +1201,8 @@ void StereoTracker::trackOne(size_t i, const cv::Mat& left, const cv::Mat& right
   // The NCC level follows slow changes (illumination, deformation) over ~20 frames.
   for (int cam = 0; cam < 2; ++cam) {
     const double ncc = cam == 0 ? ncc_l : ncc_r;
+    // The frame-0 template's level: a match with the recent template does not move it.
+    if (!s.anchored[static_cast<size_t>(cam)]) continue;
     s.ncc_level[cam] = s.ncc_level[cam] > 0.0 ? 0.95 * s.ncc_level[cam] + 0.05 * ncc : ncc;
   }
 }
@@ -1225,7 +1247,32 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
   tracked_ = true;
 }
 
+void StereoTracker::refreshTemplates(const cv::Mat& left, const cv::Mat& right) noexcept {
+  const size_t n = features_.size();
+  const auto budget = std::min(n, static_cast<size_t>(std::max(0, config_.template_refresh)));
+  for (size_t visited = 0; visited < budget; ++visited) {
+    const size_t i = template_next_ % n;
+    template_next_ = (i + 1) % n;
+    State& s = states_[i];
+    if (features_[i].status != FeatureStatus::kOk || !s.anchored[0] || !s.anchored[1]) continue;
+    bool ok = true;
+    for (size_t c = 0; c < 2 && ok; ++c) {
+      const cv::Mat& img = c == 0 ? left : right;
+      const cv::Vec2d at = c == 0 ? features_[i].left : s.right_track;
+      const cv::Point p(static_cast<int>(std::lround(at[0])), static_cast<int>(std::lround(at[1])));
+      ok = p.x - kHalf >= 0 && p.y - kHalf >= 0 && p.x + kHalf < img.cols &&
+           p.y + kHalf < img.rows &&
+           s.recent_ncc[c].set(img.ptr<uint8_t>(p.y - kHalf) + p.x - kHalf, img.step, kSide,
+                               kSide) &&
+           s.recent_shift[c].set(img.data, img.step, img.cols, img.rows, at);
+      s.recent_offset[c] = at - cv::Vec2d(p.x, p.y);
+    }
+    s.recent = {ok, ok};
+  }
+}
+
 int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noexcept {
+  if (tracked_ && left.size() == right.size()) refreshTemplates(left, right);
   const size_t n = features_.size();
   // The pair the features were detected in has been matched already: its noise counts once.
   if (!tracked_ || !config_.refinement || config_.stereo_refresh <= 0 || n == 0 ||

@@ -215,6 +215,11 @@ struct TrackerConfig {
   // The average runs over at most this many matches per feature, then forgets slowly (the
   // surface's shape in the two views changes over minutes of brain shift).
   int stereo_refresh_window = 64;
+  // Recent templates (refreshStereo(), after the result is out): per call, this many features
+  // (round robin) that the frame-0 templates found in both views take their look in this pair
+  // as their recent template; where the frame-0 template later finds nothing or scores below
+  // min_ncc, the recent one is searched (tissue that deforms: the beating heart). 0: off.
+  int template_refresh = 25;
 };
 
 struct Roi {
@@ -337,6 +342,14 @@ class StereoTracker {
     // pairs: the next search starts there (constant velocity), else zero.
     std::array<cv::Vec2d, 2> velocity{cv::Vec2d(0.0, 0.0), cv::Vec2d(0.0, 0.0)};
     int not_ok_pairs = 0;  // pairs since it was last ok
+    // Per camera: this pair's match came from the frame-0 template (not the recent one).
+    std::array<bool, 2> anchored{true, true};
+    // Per camera: the feature's look in a recent pair where the frame-0 template found it in
+    // both views (refreshTemplates()), searched where the frame-0 template finds nothing.
+    std::array<bool, 2> recent{false, false};
+    std::array<NccTemplate, 2> recent_ncc;
+    std::array<ShiftTemplate, 2> recent_shift;
+    std::array<cv::Vec2d, 2> recent_offset{};  // the position less the NCC template's centre
   };
   // Detection: fresh (initialize) or filling around the features there are (redetect).
   Result<int> detect(const cv::Mat& left, const cv::Mat& right, const Roi& roi,
@@ -355,8 +368,13 @@ class StereoTracker {
   // The search starts at the last position plus the feature's velocity.
   void trackOne(size_t i, const cv::Mat& left, const cv::Mat& right, int radius,
                 bool reacquiring) noexcept;
-  bool searchCamera(int cam, const cv::Mat& img, const cv::Vec2d& last, State& s, cv::Vec2d& pos,
+  bool searchCamera(const cv::Mat& img, const NccTemplate& t, const cv::Vec2d& last, cv::Vec2d& pos,
                     double& ncc, int radius) noexcept;
+  // One template pair near `last`: refinement from there, else NCC search and refinement.
+  Gate locate(const cv::Mat& img, const NccTemplate& t, const ShiftTemplate& shift,
+              const cv::Vec2d& last, cv::Vec2d& pos, double& ncc, int radius) noexcept;
+  // refreshStereo()'s first part: config.template_refresh features' recent templates.
+  void refreshTemplates(const cv::Mat& left, const cv::Mat& right) noexcept;
   // Matches camera `cam`'s frame-0 template near `at` and moves `at` to the match. Returns the
   // gate that failed (kNone: found; kGlint: found, but a glint is on it).
   Gate trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc, double& nmi,
@@ -384,7 +402,8 @@ class StereoTracker {
   AffineTemplate refresh_affine_;  // refreshStereo()'s scratch templates
   ShiftTemplate refresh_shift_;
   size_t refresh_next_ = 0;
-  bool tracked_ = false;  // track() ran since the last detection
+  size_t template_next_ = 0;  // refreshTemplates()'s round robin
+  bool tracked_ = false;      // track() ran since the last detection
   Roi roi_;
   double depth_tolerance_mm_ = 0.0;
   int next_id_ = 0;
