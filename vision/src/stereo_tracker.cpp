@@ -1030,7 +1030,7 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
   // Where the frame-0 template finds nothing (tissue that deforms: a beating heart), its look
   // in a recent pair where the frame-0 template did find it (refreshTemplates()). One hop from
   // a frame-0 match, never a chain: the error does not add up over updates.
-  if (!s.anchored[c] && s.recent[c]) {
+  if (!s.anchored[c] && s.recent) {
     cv::Vec2d p2 = last;
     double n2 = 0.0;
     if (locate(img, s.recent_ncc[c], s.recent_shift[c], last, p2, n2, radius) == Gate::kNone &&
@@ -1259,15 +1259,13 @@ void StereoTracker::refreshTemplates(const cv::Mat& left, const cv::Mat& right) 
     for (size_t c = 0; c < 2 && ok; ++c) {
       const cv::Mat& img = c == 0 ? left : right;
       const cv::Vec2d at = c == 0 ? features_[i].left : s.right_track;
-      const cv::Point p(static_cast<int>(std::lround(at[0])), static_cast<int>(std::lround(at[1])));
-      ok = p.x - kHalf >= 0 && p.y - kHalf >= 0 && p.x + kHalf < img.cols &&
-           p.y + kHalf < img.rows &&
-           s.recent_ncc[c].set(img.ptr<uint8_t>(p.y - kHalf) + p.x - kHalf, img.step, kSide,
-                               kSide) &&
+      const uint8_t* patch = nullptr;
+      ok = patchAt(img, at, patch) && s.recent_ncc[c].set(patch, img.step, kSide, kSide) &&
            s.recent_shift[c].set(img.data, img.step, img.cols, img.rows, at);
-      s.recent_offset[c] = at - cv::Vec2d(p.x, p.y);
+      s.recent_offset[c] = at - cv::Vec2d(static_cast<double>(std::lround(at[0])),
+                                          static_cast<double>(std::lround(at[1])));
     }
-    s.recent = {ok, ok};
+    s.recent = ok;
   }
 }
 

@@ -344,9 +344,9 @@ class StereoTracker {
     int not_ok_pairs = 0;  // pairs since it was last ok
     // Per camera: this pair's match came from the frame-0 template (not the recent one).
     std::array<bool, 2> anchored{true, true};
-    // Per camera: the feature's look in a recent pair where the frame-0 template found it in
-    // both views (refreshTemplates()), searched where the frame-0 template finds nothing.
-    std::array<bool, 2> recent{false, false};
+    // The feature's look in a recent pair where the frame-0 templates found it in both views
+    // (refreshTemplates()), per camera, searched where the frame-0 template finds nothing.
+    bool recent = false;
     std::array<NccTemplate, 2> recent_ncc;
     std::array<ShiftTemplate, 2> recent_shift;
     std::array<cv::Vec2d, 2> recent_offset{};  // the position less the NCC template's centre
