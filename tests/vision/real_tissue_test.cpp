@@ -101,6 +101,46 @@ TEST_F(RealTissueOnTheHeart, UnsettledStereoMatchesAreRefinedInTranslationWhereF
   }
 }
 
+// Issue 32's first acceptance figure: >= 80 features at the first detection of the heart from a
+// left ROI. Its 200x180 ROI held 85 Harris corners (spaced 12 px, 17 px inside the ROI), and a
+// third of the matches scored under the stereo NCC gate chosen on renders (0.94). Points textured
+// over the whole template (spaced 8 px, their templates reaching out of the ROI) are matched
+// after the corners, and the stereo NCC threshold is fitted to the first round's own scores.
+TEST_F(RealTissueOnTheHeart, TexturedPointsAndAFittedStereoNccFillTheCeiling) {
+  auto found = findStereoRange(pair_.rig, pair_.left, pair_.right, hamlyn::kRoi);
+  ASSERT_TRUE(found) << found.error().message;
+  const Roi roi{hamlyn::kRoi, found->right};
+  TrackerConfig before;
+  before.textured_points = false;
+  before.min_stereo_ncc_bound = before.min_stereo_ncc;  // never fitted
+  StereoTracker corners(pair_.rig, before);
+  auto n_before = corners.initialize(pair_.left, pair_.right, roi, found->tolerance_mm);
+  ASSERT_TRUE(n_before) << n_before.error().message;
+  EXPECT_FALSE(corners.fittedGates().stereo_ncc_fitted);
+  StereoTracker now(pair_.rig, TrackerConfig{});
+  auto n = now.initialize(pair_.left, pair_.right, roi, found->tolerance_mm);
+  ASSERT_TRUE(n) << n.error().message;
+  const FittedGates& g = now.fittedGates();
+  std::cout << "hamlyn pair 1: " << *n_before << " ok from corners at the configured stereo NCC, "
+            << *n << " with textured points and the fitted threshold (" << now.candidates().size()
+            << " candidates): " << g.summary() << "\n";
+  EXPECT_LE(*n_before, 50);  // measured 41
+  EXPECT_GE(*n, 80);         // measured 96
+  EXPECT_TRUE(g.stereo_ncc_fitted);
+  EXPECT_LT(g.min_stereo_ncc, TrackerConfig{}.min_stereo_ncc);
+  EXPECT_GE(g.min_stereo_ncc, TrackerConfig{}.min_stereo_ncc_bound);
+  EXPECT_NE(g.summary().find("stereo NCC 0.88 (fitted"), std::string::npos) << g.summary();
+  // Every feature inside the left ROI, above the fitted threshold, and on the rig's rows.
+  for (const Feature& f : now.features()) {
+    if (f.status != FeatureStatus::kOk) continue;
+    EXPECT_TRUE(hamlyn::kRoi.contains(cv::Point(int(f.left[0]), int(f.left[1]))))
+        << "feature " << f.id;
+    EXPECT_GE(f.ncc, g.min_stereo_ncc) << "feature " << f.id;
+    EXPECT_NEAR(pair_.rig.epipolarOffset(f.left, f.right), found->vertical_px, 1.0)
+        << "feature " << f.id;
+  }
+}
+
 // The heart's ok features per pair and the ok matches' vertical disparities over all 300 pairs,
 // as `pulsetrack track --fps 25 --roi-left 120,60,200,180` and the daemon run them (the session:
 // detection, re-detection, tracking, and after each result the stereo and template refreshes).
@@ -166,7 +206,11 @@ TEST(RealTissue, TheBeatingHeartIsTrackedThroughTheWholeSequence) {
             << " (frame-0 templates only: " << off.median << "), pairs with none " << none
             << "; ok matches' vertical disparity median " << vertical_median << " px\n";
   EXPECT_EQ(none, 0);
-  EXPECT_GE(on.ok_per_pair.front(), 40);  // 33 before the translation fallback
+  // The issue's >= 80 at the first detection (measured 96; 41 before the textured points and
+  // the fitted stereo NCC, 33 before the translation fallback). Its >= 50 ok in 80 % of the
+  // pairs is not met: the median is 31 (19 before).
+  EXPECT_GE(on.ok_per_pair.front(), 80);
+  EXPECT_GE(on.median, 25);
   EXPECT_GE(on.median, off.median + 3);
   EXPECT_LE(vertical_median, 1.0);
 }
