@@ -103,6 +103,8 @@ int run(int argc, char** argv) {
                            : "");
       return 1;
     }
+    if (const std::string note = vision::rigNotes(*rig, config->rig.string()); !note.empty())
+      log_config.warn("{}", note);
     if (one_device && (device.width == 0 || device.height == 0)) {
       const cv::Size whole = drivers::layoutFrameSize(config->layout, rig->left.imageSize());
       device.width = whole.width;

@@ -8,6 +8,7 @@
 #include <fstream>
 #include <iostream>
 #include <map>
+#include <opencv2/core/persistence.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <regex>
 #include <set>
@@ -184,6 +185,21 @@ TEST(TrackCli, ImageFolderAndMatch) {
   EXPECT_NE(out.output.find(std::to_string(n) + " candidates, " + std::to_string(ok) + " ok"),
             std::string::npos)
       << out.output << " (file: " << n << " rows, " << ok << " ok)";
+  // The same rig written by OpenCV without D1/D2 (a calibration of rectified or undistorted
+  // images, as some tools write it): taken, and the command says what it assumed.
+  {
+    cv::FileStorage in(dir / "rec/rig.yaml", cv::FileStorage::READ);
+    cv::FileStorage nd(dir / "no-d.yml", cv::FileStorage::WRITE);
+    for (const char* key : {"M1", "M2", "R", "T"}) nd << key << in[key].mat();
+  }
+  out = test::run(test::cli() + " match --rig " + (dir / "no-d.yml") + " --left " +
+                  (dir / "left_0.png") + " --right " + (dir / "right_0.png") + kRois + "--out " +
+                  (dir / "m2.csv"));
+  ASSERT_EQ(out.exit_code, 0) << out.output;
+  EXPECT_NE(out.output.find("note: " + (dir / "no-d.yml") +
+                            ": no D1/D2 (lens distortion): the images are taken as free of it"),
+            std::string::npos)
+      << out.output;
 }
 
 TEST(TrackCli, ClearErrors) {

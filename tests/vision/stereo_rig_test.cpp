@@ -309,6 +309,48 @@ TEST(RigForms, OpenCvFileWithoutImageSizeOrRmsTakesTheImagesSize) {
   for (int i = 0; i < 9; ++i) EXPECT_NEAR(rig->r.val[i], ref.r.val[i], 1e-6);
 }
 
+// A calibration of rectified or undistorted images written without D1/D2 (the RecoverTissueDeform
+// in-vivo sample's, issue 32): read as free of distortion, and said; one of the two alone is a
+// damaged file.
+TEST(RigForms, OpenCvFileWithoutDistortionIsReadAsUndistortedAndSaid) {
+  test::TempDir dir;
+  const StereoRig ref = sampleRig();
+  const std::string path = dir / "rectified.yml";
+  {
+    cv::FileStorage fs(path, cv::FileStorage::WRITE);
+    fs << "M1" << cv::Mat(ref.left.k()) << "M2" << cv::Mat(ref.right.k()) << "R" << cv::Mat(ref.r)
+       << "T" << cv::Mat(ref.t);
+  }
+  auto rig = loadRig(path, {1360, 1024}, "the images");
+  ASSERT_TRUE(rig) << rig.error().message;
+  EXPECT_FALSE(rig->distortion_given);
+  for (const double d : rig->left.dist()) EXPECT_EQ(d, 0.0);
+  for (const double d : rig->right.dist()) EXPECT_EQ(d, 0.0);
+  for (int i = 0; i < 9; ++i) EXPECT_EQ(rig->right.k().val[i], ref.right.k().val[i]);
+  const std::string note = rigNotes(*rig, path);
+  EXPECT_NE(note.find("rectified.yml: no D1/D2 (lens distortion): the images are taken as free of "
+                      "it"),
+            std::string::npos)
+      << note;
+  ASSERT_TRUE(saveRig(ref, dir / "full.yml"));
+  auto with = loadRig(dir / "full.yml");
+  ASSERT_TRUE(with) << with.error().message;
+  EXPECT_TRUE(with->distortion_given);
+  EXPECT_EQ(rigNotes(*with, "full.yml"), "");
+  const std::string half = dir / "half.yml";
+  {
+    cv::FileStorage fs(half, cv::FileStorage::WRITE);
+    fs << "M1" << cv::Mat(ref.left.k()) << "D1" << cv::Mat(1, 4, CV_64F, cv::Scalar(0.0)) << "M2"
+       << cv::Mat(ref.right.k()) << "R" << cv::Mat(ref.r) << "T" << cv::Mat(ref.t);
+  }
+  auto damaged = loadRig(half, {1360, 1024}, "the images");
+  ASSERT_FALSE(damaged);
+  EXPECT_NE(damaged.error().message.find("half.yml: key 'D2' is missing (D1 is given: give both, "
+                                         "or neither"),
+            std::string::npos)
+      << damaged.error().message;
+}
+
 TEST(RigForms, ACalibrationOfAnotherSizeIsANamedError) {
   test::TempDir dir;
   ASSERT_TRUE(saveRig(sampleRig(), dir / "rig.yaml"));

@@ -132,7 +132,12 @@ vision::Result<vision::StereoRig> loadRigArgs(const CommonArgs& a, cv::Size data
   if (!a.rectified.empty()) return vision::parseRectified(a.rectified, data_size);
   if (!a.camera_info.empty())
     return vision::loadCameraInfoPair(a.camera_info[0], a.camera_info[1], data_size, data_name);
-  return vision::loadRig(a.rig, data_size, data_name);
+  auto rig = vision::loadRig(a.rig, data_size, data_name);
+  if (rig) {
+    if (const std::string note = vision::rigNotes(*rig, a.rig); !note.empty())
+      fmt::print(stderr, "note: {}\n", note);
+  }
+  return rig;
 }
 
 bool rigGiven(const CommonArgs& a) {

@@ -253,10 +253,15 @@ Result<cv::Matx33d> readMatx33(const YAML::Node& root, const std::string& where,
   return cv::Matx33d(m->ptr<double>());
 }
 
+// `undistorted`: the file has neither D1 nor D2 (the images are taken as free of distortion).
 Result<CameraModel> readCamera(const YAML::Node& root, const std::string& where, const char* k_key,
-                               const char* d_key, cv::Size size) {
+                               const char* d_key, cv::Size size, bool undistorted) {
   auto k = readMatx33(root, where, k_key);
   if (!k) return std::unexpected(k.error());
+  if (undistorted) {
+    constexpr std::array<double, 4> kNone{};
+    return CameraModel(*k, kNone.data(), static_cast<int>(kNone.size()), size);
+  }
   auto d = readMatrix(root, where, d_key);
   if (!d) return std::unexpected(d.error());
   const int n = static_cast<int>(d->total());
@@ -336,9 +341,22 @@ Result<StereoRig> readRigKeys(const YAML::Node& root, const std::string& where, 
   }
 
   StereoRig rig;
-  auto left = readCamera(root, where, "M1", "D1", size);
+  // D1 and D2 are optional together (a calibration of rectified or undistorted images: some
+  // tools write none); one without the other is a damaged file.
+  const bool has_d1 = static_cast<bool>(root["D1"]), has_d2 = static_cast<bool>(root["D2"]);
+  for (const char* k : {"M1", "M2"}) {  // a truncated file: its first broken key is named
+    if (auto m = readMatx33(root, where, k); !m) return std::unexpected(m.error());
+  }
+  if (has_d1 != has_d2) {
+    return fail(fmt::format(
+        "{}: key '{}' is missing ({} is given: give both, or neither for images without lens "
+        "distortion)",
+        where, has_d1 ? "D2" : "D1", has_d1 ? "D1" : "D2"));
+  }
+  rig.distortion_given = has_d1;
+  auto left = readCamera(root, where, "M1", "D1", size, !has_d1);
   if (!left) return std::unexpected(left.error());
-  auto right = readCamera(root, where, "M2", "D2", size);
+  auto right = readCamera(root, where, "M2", "D2", size, !has_d2);
   if (!right) return std::unexpected(right.error());
   rig.left = *left;
   rig.right = *right;
@@ -411,6 +429,14 @@ Result<T> parseYaml(const std::string& text, const std::string& where, const cha
 }
 
 }  // namespace
+
+std::string rigNotes(const StereoRig& rig, const std::string& where) {
+  if (rig.distortion_given) return {};
+  return fmt::format(
+      "{}: no D1/D2 (lens distortion): the images are taken as free of it (rectified or "
+      "undistorted video); if they are not, depth is biased towards the image borders",
+      where);
+}
 
 Result<StereoRig> loadRig(const std::filesystem::path& path, cv::Size data_size,
                           const std::string& data_name) {

@@ -22,6 +22,9 @@ struct StereoRig {
   cv::Matx33d r = cv::Matx33d::eye();  // left -> right rotation
   cv::Vec3d t;                         // left -> right translation
   double rms = 0.0;                    // stereo reprojection RMS of the calibration, px
+  // False: the file gave no distortion (neither D1 nor D2): the images are taken as free of it
+  // (rectified or undistorted video). The tools say so (rigNotes()).
+  bool distortion_given = true;
 
   [[nodiscard]] double baseline() const noexcept { return cv::norm(t); }
   // The right camera's centre in the left frame: -R^T T.
@@ -83,6 +86,9 @@ inline constexpr size_t kMaxRigFileBytes = 1 << 20;  // a rig file is ~2 KB
 // `data_name` in messages) is given; when both are, they must agree (a named error).
 [[nodiscard]] Result<StereoRig> loadRig(const std::filesystem::path& path, cv::Size data_size = {},
                                         const std::string& data_name = {});
+// What a loaded calibration took for granted, for the tools to say ("" when nothing): a file
+// without D1/D2 is read as images free of lens distortion.
+[[nodiscard]] std::string rigNotes(const StereoRig& rig, const std::string& where);
 // A rectified pair known only by its focal length and principal point (px, both views) and
 // baseline (mm), for `size` images; `where` names the source in messages.
 [[nodiscard]] Result<StereoRig> rectifiedRig(double focal_px, cv::Point2d principal,
