@@ -159,8 +159,8 @@ TEST(StereoTracker, StaticGlossyCortexAt45cm) {
 }
 
 // The renders the neighbour gates were chosen on leave them as configured: fitting them there
-// cost accuracy (cortex-hard 0.0363 -> 0.0449 mm). Real tissue refits them
-// (real_tissue_test.cpp).
+// cost accuracy (cortex-hard 0.0363 -> 0.0449 mm). The stereo NCC and, with it, the tracking
+// gates too. Real tissue refits them (real_tissue_test.cpp).
 TEST(StereoTracker, NeighbourGatesStayAsConfiguredOnTheRenders) {
   for (const double gloss : {0.0, sim::SceneSpec{}.cortex.specular_strength}) {
     sim::SceneSpec spec = staticCortex();
@@ -176,7 +176,13 @@ TEST(StereoTracker, NeighbourGatesStayAsConfiguredOnTheRenders) {
               << "\n";
     EXPECT_FALSE(g.sheen_fitted);
     EXPECT_FALSE(g.epipolar_spread_fitted);
+    EXPECT_FALSE(g.stereo_ncc_fitted);
+    EXPECT_FALSE(g.tracking_fitted);
     EXPECT_EQ(g.max_sheen, TrackerConfig{}.max_sheen);
+    EXPECT_EQ(g.min_stereo_ncc, TrackerConfig{}.min_stereo_ncc);
+    EXPECT_EQ(g.max_motion_px, TrackerConfig{}.max_motion_px);
+    EXPECT_EQ(g.max_ncc_drop, TrackerConfig{}.max_ncc_drop);
+    EXPECT_EQ(g.video_search_px, TrackerConfig{}.video_search_px);
     EXPECT_NE(g.summary().find("as configured"), std::string::npos);
     EXPECT_GE(*ok, 95);
   }

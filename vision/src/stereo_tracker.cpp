@@ -85,6 +85,13 @@ std::string FittedGates::summary() const {
                   one(max_sheen, configured_sheen, sheen_fitted, 100.0, " %"),
                   one(max_epipolar_spread_px, configured_epipolar_spread_px, epipolar_spread_fitted,
                       1.0, " px"));
+  if (tracking_fitted) {
+    text += fmt::format(
+        "; tracking: motion {:.2f} px, NCC drop {:.2f}, search +-{} px (the stereo NCC's kind of "
+        "images: blurred video; configured {:.2f} px, {:.2f}, +-{} px)",
+        max_motion_px, max_ncc_drop, video_search_px, configured_motion_px, configured_ncc_drop,
+        configured_search_px);
+  }
   if (stereo_translation > 0) {
     text += fmt::format(
         "; the stereo match's affine refinement did not settle on {} matches: {} features "
@@ -258,13 +265,31 @@ double minBlockNcc(const cv::Mat& left, const cv::Vec2d& at_left, const cv::Mat&
 
 StereoTracker::StereoTracker(const StereoRig& rig, const TrackerConfig& config)
     : rig_(rig), config_(config) {
-  const int side = 2 * config_.video_search_px + 1;
+  const int side = 2 * maxSearchPx() + 1;
   scores_.resize(static_cast<size_t>(side) * side);
   residuals_.resize(static_cast<size_t>(std::max(config_.max_features, 1)));
   const auto refresh = static_cast<size_t>(std::max(config_.stereo_refresh, 1));
   refresh_ml_.resize(refresh);
   refresh_sorted_.resize(refresh);
   refresh_index_.resize(refresh);
+}
+
+int StereoTracker::maxSearchPx() const noexcept {
+  return std::max(config_.video_search_px,
+                  config_.fit_tracking_gates ? config_.video_search_bound_px : 0);
+}
+
+void StereoTracker::setTrackingGates() noexcept {
+  const bool fit = config_.fit_tracking_gates && gates_.stereo_ncc_fitted;
+  gates_.configured_motion_px = config_.max_motion_px;
+  gates_.configured_ncc_drop = config_.max_ncc_drop;
+  gates_.configured_search_px = config_.video_search_px;
+  gates_.tracking_fitted = fit;
+  gates_.max_motion_px =
+      fit ? std::max(config_.max_motion_px, config_.max_motion_bound_px) : config_.max_motion_px;
+  gates_.max_ncc_drop =
+      fit ? std::max(config_.max_ncc_drop, config_.max_ncc_drop_bound) : config_.max_ncc_drop;
+  gates_.video_search_px = fit ? maxSearchPx() : config_.video_search_px;
 }
 
 int StereoTracker::okCount() const noexcept {
@@ -517,6 +542,7 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
             .configured_sheen = config_.max_sheen,
             .configured_epipolar_spread_px = config_.max_epipolar_spread_px,
             .stereo_ncc_fitted = stereo_ncc_ < config_.min_stereo_ncc};
+  setTrackingGates();
 
   if (!fill) {
     features_.clear();
@@ -646,10 +672,9 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   }
   const int nx = sx1 - sx0 + 1, ny = sy1 - sy0 + 1;
   std::vector<float> scores(static_cast<size_t>(nx) * static_cast<size_t>(ny));
-  scratch_.assign(
-      static_cast<size_t>(std::max(nx, 2 * config_.video_search_px + 1) - 1 + kTemplatePad) *
-          static_cast<size_t>(std::max(ny, 2 * config_.video_search_px + 1) - 1 + kSide),
-      0);
+  scratch_.assign(static_cast<size_t>(std::max(nx, 2 * maxSearchPx() + 1) - 1 + kTemplatePad) *
+                      static_cast<size_t>(std::max(ny, 2 * maxSearchPx() + 1) - 1 + kSide),
+                  0);
 
   candidates_.clear();
   std::vector<size_t> candidate_of_feature(first_new, SIZE_MAX);
@@ -941,6 +966,7 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
       return false;
     gates_.stereo_ncc_fitted = true;
     gates_.min_stereo_ncc = stereo_ncc_ = 1.0 - threshold;
+    setTrackingGates();
     return true;
   };
   // Match in rounds: as many as the ceiling (or until fill), the neighbour gates (sheen, epipolar
@@ -1239,7 +1265,7 @@ void StereoTracker::trackOne(size_t i, const cv::Mat& left, const cv::Mat& right
     return;
   }
   const auto dropped = [&](int cam, double ncc) {
-    return s.ncc_level[cam] > 0.0 && ncc < s.ncc_level[cam] - config_.max_ncc_drop;
+    return s.ncc_level[cam] > 0.0 && ncc < s.ncc_level[cam] - gates_.max_ncc_drop;
   };
   // Every gate is evaluated (failed holds them all); the first in this order is reported.
   FeatureStatus status = FeatureStatus::kOk;
@@ -1305,7 +1331,7 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
     states_[i].seen = features_[i].status == FeatureStatus::kOk;
   // The features seen in the last pair, from where they were.
   for (size_t i = 0; i < features_.size(); ++i) {
-    if (states_[i].seen) trackOne(i, left, right, config_.video_search_px, false);
+    if (states_[i].seen) trackOne(i, left, right, gates_.video_search_px, false);
   }
   // Re-acquisition: the hidden ones, and those seen in the last pair whose search just failed
   // (moved farther than the window: a beating heart's faster phases), from where their
@@ -1316,7 +1342,7 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
     if (retry && features_[i].status != FeatureStatus::kLost) continue;
     cv::Vec2d l, r;
     double spread = 0.0;
-    int radius = config_.video_search_px;
+    int radius = gates_.video_search_px;
     if (predict(i, l, r, features_.size(), spread)) {
       features_[i].left = l;
       states_[i].right_track = r;
@@ -1444,7 +1470,7 @@ void StereoTracker::motionGate() noexcept {
     cv::Vec2d pl, pr;
     if (!predict(i, pl, pr, n)) continue;
     const cv::Vec2d off = (states_[i].right_track - pr) - (f.left - pl);
-    if (std::abs(off[0]) > config_.max_motion_px || std::abs(off[1]) > config_.max_motion_px)
+    if (std::abs(off[0]) > gates_.max_motion_px || std::abs(off[1]) > gates_.max_motion_px)
       f.failed |= gateBit(Gate::kMotion);  // the status follows below (predict() reads it)
   }
   for (Feature& f : features_) {

@@ -237,6 +237,16 @@ struct TrackerConfig {
   // as their recent template; where the frame-0 template later finds nothing or scores below
   // min_ncc, the recent one is searched (tissue that deforms: the beating heart). 0: off.
   int template_refresh = 25;
+  // Where the first detection fitted the stereo NCC gate (blurred video, unlike the renders and
+  // photographs the tracking gates were chosen on), tracking takes these bounds instead of
+  // max_motion_px, max_ncc_drop and video_search_px: the Hamlyn heart's disparity changes by
+  // more than 0.5 px beyond its neighbours' over a beat, its NCC swings by more than 0.08, and it
+  // moves up to 17 px a pair (ok per pair median 31.5 -> 47, >= 50 ok in 28.7 -> 44.3 % of the
+  // pairs; docs/gates.md). Off: the configured ones always.
+  bool fit_tracking_gates = true;
+  double max_motion_bound_px = 1.0;
+  double max_ncc_drop_bound = 0.15;
+  int video_search_bound_px = 12;
 };
 
 struct Roi {
@@ -260,6 +270,15 @@ struct FittedGates {
   // refinement did not settle, and the features among them refined in translation instead.
   int stereo_unsettled = 0;
   int stereo_translation = 0;
+  // Tracking (TrackerConfig::fit_tracking_gates): the gates the video matches meet, widened to
+  // their bounds where the stereo NCC was fitted (the images are blurred video).
+  double max_motion_px = 0.0;
+  double max_ncc_drop = 0.0;
+  int video_search_px = 0;
+  double configured_motion_px = 0.0;
+  double configured_ncc_drop = 0.0;
+  int configured_search_px = 0;
+  bool tracking_fitted = false;
   // "sheen 2.0 %, epipolar spread 0.15 px (as configured)", or with "fitted to these images"
   // and the configured value beside each fitted one.
   [[nodiscard]] std::string summary() const;
@@ -401,6 +420,9 @@ class StereoTracker {
                    int radius) noexcept;
   void motionGate() noexcept;
   void surfaceGate() noexcept;
+  // The search radius the buffers are sized for, and the tracking gates for this detection.
+  [[nodiscard]] int maxSearchPx() const noexcept;
+  void setTrackingGates() noexcept;
   // Candidate positions in ROI coordinates (sub-pixel for blobs). Harris: the first `spaced`
   // are min_distance_px apart, the rest fill between them down to dense_distance_px.
   [[nodiscard]] std::vector<cv::Point2d> detectHarris(const cv::Mat& img, size_t& spaced,
