@@ -320,9 +320,19 @@ std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img, size_t&
   // that, over the 15x15 template, is a line. Along a line the match slides with the noise, and
   // a slide along the epipolar direction passes the epipolar gate straight into depth (0.6 mm
   // per px here). Both eigenvalues of the structure tensor over the template must be large.
-  cv::Mat eig;
-  cv::cornerEigenValsAndVecs(img, eig, kSide, 3);
+  // Computed once, over the ROI and as much of the image around it as the corners' margin (the
+  // textured points below may lie up to the ROI's border, their templates reaching out of it).
   const int margin = kHalf + config_.video_search_px + 2;
+  cv::Size whole;
+  cv::Point ofs;
+  img.locateROI(whole, ofs);
+  cv::Mat wide = img;
+  wide.adjustROI(margin, margin, margin, margin);  // clipped to the image
+  cv::Point wofs;
+  wide.locateROI(whole, wofs);
+  const cv::Point shift = ofs - wofs;  // img(0,0) in wide
+  cv::Mat eig;
+  cv::cornerEigenValsAndVecs(wide, eig, kSide, 3);
   struct Candidate {
     cv::Point p;
     float response;
@@ -335,7 +345,7 @@ std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img, size_t&
     for (int x = margin; x < img.cols - margin; ++x) {
       const float h = harris.at<float>(y, x);
       if (h <= 0.0F || h < dilated.at<float>(y, x) || dark.at<uint8_t>(y, x) == 0) continue;
-      const cv::Vec6f& e = eig.at<cv::Vec6f>(y, x);
+      const cv::Vec6f& e = eig.at<cv::Vec6f>(y + shift.y, x + shift.x);
       const float l1 = std::max(e[0], e[1]), l2 = std::min(e[0], e[1]);
       if (!(l2 > 0.0F) || l2 < static_cast<float>(config_.min_isotropy) * l1) continue;
       const int cell =
@@ -384,20 +394,10 @@ std::vector<cv::Point2d> StereoTracker::detectHarris(const cv::Mat& img, size_t&
     // template in both directions (the smaller eigenvalue of its structure tensor, a local
     // maximum): blurred video's tissue, where the corners are few. Their template may reach
     // out of the ROI (the image around it): an ROI the size of the tissue keeps its border.
-    cv::Size whole;
-    cv::Point ofs;
-    img.locateROI(whole, ofs);
-    cv::Mat wide = img;
-    wide.adjustROI(margin, margin, margin, margin);  // clipped to the image
-    cv::Point wofs;
-    wide.locateROI(whole, wofs);
-    const cv::Point shift = ofs - wofs;  // img(0,0) in wide
-    cv::Mat weig;
-    cv::cornerEigenValsAndVecs(wide, weig, kSide, 3);
     cv::Mat l2(wide.size(), CV_32F);
     for (int y = 0; y < wide.rows; ++y) {
       for (int x = 0; x < wide.cols; ++x) {
-        const cv::Vec6f& e = weig.at<cv::Vec6f>(y, x);
+        const cv::Vec6f& e = eig.at<cv::Vec6f>(y, x);
         const float a = std::max(e[0], e[1]), b = std::min(e[0], e[1]);
         l2.at<float>(y, x) =
             (b > 0.0F && b >= static_cast<float>(config_.min_isotropy) * a) ? b : 0.0F;
@@ -534,14 +534,14 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   // re-detections that fill: their few matches lie where the first detection found none, often
   // in sheen, which the configured threshold is there to reject (fitting there too took
   // cortex-hard's 3D RMS from 0.0365 to 0.0372 mm).
-  if (!fill) stereo_ncc_ = config_.min_stereo_ncc;
-  gates_ = {.min_stereo_ncc = stereo_ncc_,
+  const double stereo_ncc = fill ? gates_.min_stereo_ncc : config_.min_stereo_ncc;
+  gates_ = {.min_stereo_ncc = stereo_ncc,
             .max_sheen = config_.max_sheen,
             .max_epipolar_spread_px = config_.max_epipolar_spread_px,
             .configured_stereo_ncc = config_.min_stereo_ncc,
             .configured_sheen = config_.max_sheen,
             .configured_epipolar_spread_px = config_.max_epipolar_spread_px,
-            .stereo_ncc_fitted = stereo_ncc_ < config_.min_stereo_ncc};
+            .stereo_ncc_fitted = stereo_ncc < config_.min_stereo_ncc};
   setTrackingGates();
 
   if (!fill) {
@@ -965,7 +965,7 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
     if (!fitThreshold(misfit, config_.fit_sigmas, 1.0 - config_.min_stereo_ncc_bound, threshold))
       return false;
     gates_.stereo_ncc_fitted = true;
-    gates_.min_stereo_ncc = stereo_ncc_ = 1.0 - threshold;
+    gates_.min_stereo_ncc = 1.0 - threshold;
     setTrackingGates();
     return true;
   };

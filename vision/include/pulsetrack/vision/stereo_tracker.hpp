@@ -451,7 +451,6 @@ class StereoTracker {
   int next_id_ = 0;
   int detected_ok_ = 0;
   FittedGates gates_;
-  double stereo_ncc_ = 0.0;  // the stereo NCC threshold of the first detection (fitted or not)
 };
 
 }  // namespace pulsetrack::vision
