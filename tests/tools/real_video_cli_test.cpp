@@ -91,7 +91,7 @@ TEST(RealVideo, EndoscopeWithoutAnyRoi) {
   // The Hamlyn heart without an ROI (300 pairs, 25 fps assumed): at least as many features at
   // the first detection and ok per pair as with the hand-drawn ROI (33 and 13 before the
   // translation fallback, 64 and 24 before the textured points, 100 and 35 before the fitted
-  // tracking gates; measured 100, 52).
+  // tracking gates, 100 and 52 before their 20 refinement steps; measured 100, 66).
   const auto heart = data::shared("hamlyn-invivo-tpsnet");
   PULSETRACK_SKIP_WITHOUT_DATA(heart);
   r = test::run(test::cli() + " track -q --rig " + (heart / "rig.yaml").string() + " --left '" +
@@ -108,7 +108,7 @@ TEST(RealVideo, EndoscopeWithoutAnyRoi) {
   std::cout << "hamlyn without an ROI: " << first << " ok at the first pair, median "
             << counts[counts.size() / 2] << " per pair over " << counts.size() << "\n";
   EXPECT_GE(first, 80);
-  EXPECT_GE(counts[counts.size() / 2], 40);
+  EXPECT_GE(counts[counts.size() / 2], 55);
 }
 
 // The Hamlyn beating heart (300 rectified pairs, 360x288; 25 fps assumed), a left ROI only:

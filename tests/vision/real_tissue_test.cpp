@@ -137,7 +137,9 @@ TEST_F(RealTissueOnTheHeart, TexturedPointsAndAFittedStereoNccFillTheCeiling) {
   EXPECT_EQ(g.max_motion_px, TrackerConfig{}.max_motion_bound_px);
   EXPECT_EQ(g.max_ncc_drop, TrackerConfig{}.max_ncc_drop_bound);
   EXPECT_EQ(g.video_search_px, TrackerConfig{}.video_search_bound_px);
-  EXPECT_NE(g.summary().find("tracking: motion 1.00 px, NCC drop 0.15, search +-12 px"),
+  EXPECT_EQ(g.video_refine_iterations, TrackerConfig{}.video_refine_iterations_bound);
+  EXPECT_NE(g.summary().find("tracking: motion 1.00 px, NCC drop 0.15, search +-12 px, "
+                             "refinement 20 steps"),
             std::string::npos)
       << g.summary();
   // Every feature inside the left ROI, above the fitted threshold, and on the rig's rows.
@@ -214,20 +216,25 @@ TEST(RealTissue, TheBeatingHeartIsTrackedThroughTheWholeSequence) {
                    on.vertical.begin() + static_cast<long>(on.vertical.size() / 2),
                    on.vertical.end());
   const double vertical_median = on.vertical[on.vertical.size() / 2];
+  const auto fifty =
+      std::count_if(on.ok_per_pair.begin(), on.ok_per_pair.end(), [](int n) { return n >= 50; });
+  const double fifty_share =
+      static_cast<double>(fifty) / static_cast<double>(on.ok_per_pair.size());
   std::cout << "hamlyn, 300 pairs: " << on.ok_per_pair.front()
             << " ok at the first pair, ok per pair median " << on.median
             << " (frame-0 templates only: " << off.median
-            << "; the renders' tracking gates: " << fixed.median << "), pairs with none " << none
+            << "; the renders' tracking gates: " << fixed.median << "), pairs with >= 50 ok "
+            << 100.0 * fifty_share << " %, pairs with none " << none
             << "; ok matches' vertical disparity median " << vertical_median << " px\n";
   EXPECT_EQ(none, 0);
-  // The issue's >= 80 at the first detection (measured 96; 41 before the textured points and
-  // the fitted stereo NCC, 33 before the translation fallback). Its >= 50 ok in 80 % of the
-  // pairs is not met: the median is 47 (32 with the renders' tracking gates, 19 before).
-  // The recent templates' gain is smaller with the fitted tracking gates (measured 47 vs 44;
-  // 32 vs 26 with the renders' gates, 19 vs 10 before the textured points).
+  // The acceptance: >= 80 at the first detection (measured 96; 41 before the textured
+  // points and the fitted stereo NCC, 33 before the translation fallback) and >= 50 ok in 80 %
+  // of the pairs (measured 92 %, median 66; 39 % and 46.5 with the video refinement's 10 steps,
+  // 32 with the renders' tracking gates, 19 before the textured points).
   EXPECT_GE(on.ok_per_pair.front(), 80);
-  EXPECT_GE(on.median, 40);
-  EXPECT_GE(on.median, fixed.median + 8);
+  EXPECT_GE(fifty_share, 0.80);
+  EXPECT_GE(on.median, 60);
+  EXPECT_GE(on.median, fixed.median + 20);
   EXPECT_GE(on.median, off.median);
   EXPECT_LE(vertical_median, 1.0);
 }

@@ -87,10 +87,11 @@ std::string FittedGates::summary() const {
                       1.0, " px"));
   if (tracking_fitted) {
     text += fmt::format(
-        "; tracking: motion {:.2f} px, NCC drop {:.2f}, search +-{} px (the stereo NCC's kind of "
-        "images: blurred video; configured {:.2f} px, {:.2f}, +-{} px)",
-        max_motion_px, max_ncc_drop, video_search_px, configured_motion_px, configured_ncc_drop,
-        configured_search_px);
+        "; tracking: motion {:.2f} px, NCC drop {:.2f}, search +-{} px, refinement {} steps (the "
+        "stereo NCC's kind of images: blurred video; configured {:.2f} px, {:.2f}, +-{} px, {} "
+        "steps)",
+        max_motion_px, max_ncc_drop, video_search_px, video_refine_iterations, configured_motion_px,
+        configured_ncc_drop, configured_search_px, configured_refine_iterations);
   }
   if (stereo_translation > 0) {
     text += fmt::format(
@@ -290,6 +291,10 @@ void StereoTracker::setTrackingGates() noexcept {
   gates_.max_ncc_drop =
       fit ? std::max(config_.max_ncc_drop, config_.max_ncc_drop_bound) : config_.max_ncc_drop;
   gates_.video_search_px = fit ? maxSearchPx() : config_.video_search_px;
+  gates_.configured_refine_iterations = config_.video_refine_iterations;
+  gates_.video_refine_iterations =
+      fit ? std::max(config_.video_refine_iterations, config_.video_refine_iterations_bound)
+          : config_.video_refine_iterations;
 }
 
 int StereoTracker::okCount() const noexcept {
@@ -1121,7 +1126,8 @@ Gate StereoTracker::locate(const cv::Mat& img, const NccTemplate& t, const Shift
     // Frame-to-frame motion is mostly under a pixel, inside the translation refinement's basin:
     // refine straight from the last position, and search with NCC only when that fails (a
     // jump, a re-acquisition after an occlusion, a poor match).
-    const AffineResult ar = shift.refine(img.data, img.step, img.cols, img.rows, last);
+    const AffineResult ar =
+        shift.refine(img.data, img.step, img.cols, img.rows, last, gates_.video_refine_iterations);
     if (ar.converged && ar.ncc >= config_.min_ncc && cv::norm(ar.warp.centre - last) <= radius) {
       pos = ar.warp.centre;
       ncc = ar.ncc;
@@ -1130,7 +1136,8 @@ Gate StereoTracker::locate(const cv::Mat& img, const NccTemplate& t, const Shift
   }
   if (!searchCamera(img, t, last, pos, ncc, radius)) return Gate::kNoPeak;
   if (config_.refinement) {
-    const AffineResult ar = shift.refine(img.data, img.step, img.cols, img.rows, pos);
+    const AffineResult ar =
+        shift.refine(img.data, img.step, img.cols, img.rows, pos, gates_.video_refine_iterations);
     // Not converged: an NCC-peak or loosely converged fallback kept more of the Hamlyn heart
     // but cost cortex-hard 0.0363 -> 0.0383 / 0.0372 mm of 3D RMS (gate_eval).
     if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return Gate::kNotConverged;

@@ -130,6 +130,10 @@ struct TrackerConfig {
   int dark_window_px = 21;  // "darker than the neighbourhood" window
   int dark_delta = 2;       // grey levels below the local mean
   int video_search_px = 8;  // +- window around the last position
+  // The video match's translation refinement: at most this many Gauss-Newton steps to settle
+  // (a step under 2e-3 px), else the match is not_converged. 20 on every scene cost cortex-hard
+  // 0.0365 -> 0.0383 mm of 3D RMS (gate_eval): the slow settlers there are the worse matches.
+  int video_refine_iterations = 10;
   double min_ncc = 0.75;
   // A feature's video NCC is steady while it is seen (0.95-0.99 on tissue); a drop below its
   // own running level by more than this is an occlusion starting (an instrument's edge), even
@@ -242,11 +246,15 @@ struct TrackerConfig {
   // max_motion_px, max_ncc_drop and video_search_px: the Hamlyn heart's disparity changes by
   // more than 0.5 px beyond its neighbours' over a beat, its NCC swings by more than 0.08, and it
   // moves up to 17 px a pair (ok per pair median 31.5 -> 47, >= 50 ok in 28.7 -> 44.3 % of the
-  // pairs; docs/gates.md). Off: the configured ones always.
+  // pairs; docs/gates.md). Its video refinement settles slowly: the patches change shape over a
+  // beat and a translation's Gauss-Newton steps shrink slowly on blurred video; of the heart's
+  // not_converged refinements at 10 steps, half settle within 1.5 px by 20 (ok per pair median
+  // 46.5 -> 66, >= 50 ok in 39 -> 92 % of the pairs). Off: the configured ones always.
   bool fit_tracking_gates = true;
   double max_motion_bound_px = 1.0;
   double max_ncc_drop_bound = 0.15;
   int video_search_bound_px = 12;
+  int video_refine_iterations_bound = 20;
 };
 
 struct Roi {
@@ -275,9 +283,11 @@ struct FittedGates {
   double max_motion_px = 0.0;
   double max_ncc_drop = 0.0;
   int video_search_px = 0;
+  int video_refine_iterations = 0;
   double configured_motion_px = 0.0;
   double configured_ncc_drop = 0.0;
   int configured_search_px = 0;
+  int configured_refine_iterations = 0;
   bool tracking_fitted = false;
   // "sheen 2.0 %, epipolar spread 0.15 px (as configured)", or with "fitted to these images"
   // and the configured value beside each fitted one.
