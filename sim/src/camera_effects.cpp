@@ -35,10 +35,14 @@ bool CameraEffects::dropped(uint64_t index) const {
   return std::uniform_real_distribution<double>(0.0, 1.0)(g) < spec_.drop_probability;
 }
 
-void CameraEffects::apply(const cv::Mat& radiance, double t, cv::Mat& out) {
-  cv::multiply(radiance, vignette_, work_, gain(t));
+void CameraEffects::defocus(cv::Mat& radiance) const {
   if (spec_.blur_sigma_px > 0.0)
-    cv::GaussianBlur(work_, work_, cv::Size(0, 0), spec_.blur_sigma_px);
+    cv::GaussianBlur(radiance, radiance, cv::Size(0, 0), spec_.blur_sigma_px);
+}
+
+void CameraEffects::apply(const cv::Mat& radiance, double t, cv::Mat& out, bool blurred) {
+  cv::multiply(radiance, vignette_, work_, gain(t));
+  if (!blurred) defocus(work_);
   if (spec_.noise_sigma > 0.0) {
     rng_.fill(noise_, cv::RNG::NORMAL, 0.0, spec_.noise_sigma);
     work_ += noise_;

@@ -9,10 +9,12 @@ namespace pulsetrack::sim {
 
 vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim,
                                          const std::vector<record::TrackRow>& rows,
-                                         double outlier_threshold_mm) {
+                                         double outlier_threshold_mm, bool fields) {
   Evaluation ev;
   ev.outlier_threshold_mm = outlier_threshold_mm;
-  const int frames = sim.frameCount();
+  if (fields && sim.cortex() == nullptr)
+    return vision::fail("a track from fields (--fields) is scored on cortex scenes only");
+  const int frames = sim.frameCount() * (fields ? 2 : 1);
   struct Truth {
     bool found = false;
     cv::Vec2d uv;
@@ -33,7 +35,9 @@ vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim,
       ev.rows.push_back(re);
       continue;
     }
-    const double t = sim.frameTime(static_cast<int>(r.frame));
+    const double t = fields ? sim.frameTime(static_cast<int>(r.frame / 2)) +
+                                  static_cast<double>(r.frame % 2) * 0.5 / sim.spec().fps
+                            : sim.frameTime(static_cast<int>(r.frame));
     if (!tr.found && tr.plate_feature < -1) {  // already failed to match
       ev.rows.push_back(re);
       continue;

@@ -207,6 +207,7 @@ vision::Result<SceneSpec> parseScene(const std::string& text, const std::filesys
   s.frames = r.integer("frames", s.frames, 1, 10'000'000);
   s.seed = static_cast<unsigned>(r.integer("seed", 1, 0, 1'000'000'000));
   s.supersample = r.integer("supersample", s.supersample, 1, 4);
+  s.interlaced = r.boolean("interlaced", false);
   s.cortex.oscillations = paperMotion();
   if (const toml::table* t = r.table("camera")) {
     TableReader cr(*t, file, "camera", &error);
@@ -222,6 +223,11 @@ vision::Result<SceneSpec> parseScene(const std::string& text, const std::filesys
   }
   r.finish();
   if (!error.empty()) return fail(error);
+  if (s.interlaced && s.kind != SceneKind::kCortex)
+    return fail(
+        fmt::format("{}: interlaced = true needs kind = \"cortex\" (a plate's poses are "
+                    "per frame)",
+                    file));
   if (s.kind == SceneKind::kCortex && s.cortex.texture == "image") {
     if (s.cortex.texture_image.empty()) {
       return fail(

@@ -51,12 +51,25 @@ void StereoSimulator::render(int i, cv::Mat& left, cv::Mat& right) {
   const double t = frameTime(i);
   if (cortex_) {
     cortex_->render(rig_, t, raster_, radiance_l_, radiance_r_);
+    if (spec_.interlaced) {
+      // The bottom field (odd rows) half a frame later; each field's exposure through the lens
+      // on its own (blurring the woven frame would mix the two instants in every row).
+      cortex_->render(rig_, t + 0.5 / spec_.fps, raster_, field_l_, field_r_);
+      left_fx_.defocus(radiance_l_);
+      left_fx_.defocus(field_l_);
+      right_fx_.defocus(radiance_r_);
+      right_fx_.defocus(field_r_);
+      for (int y = 1; y < radiance_l_.rows; y += 2) {
+        field_l_.row(y).copyTo(radiance_l_.row(y));
+        field_r_.row(y).copyTo(radiance_r_.row(y));
+      }
+    }
   } else {
     plate_->render(rig_, plate_->samples().at(static_cast<size_t>(i)).c_t_p, raster_, radiance_l_,
                    radiance_r_);
   }
-  left_fx_.apply(radiance_l_, t, left);
-  right_fx_.apply(radiance_r_, t, right);
+  left_fx_.apply(radiance_l_, t, left, spec_.interlaced);
+  right_fx_.apply(radiance_r_, t, right, spec_.interlaced);
 }
 
 namespace {

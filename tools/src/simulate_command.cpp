@@ -74,6 +74,7 @@ struct EvaluateArgs {
   std::string track;
   std::string out;
   double threshold = 0.5;
+  bool fields = false;
 };
 
 int runEvaluate(const EvaluateArgs& a) {
@@ -89,7 +90,7 @@ int runEvaluate(const EvaluateArgs& a) {
   sim::StereoSimulator simulator(*spec, reader->rig());
   auto rows = record::readTrackCsv(a.track);
   if (!rows) return commandError("evaluate", rows.error().message);
-  auto ev = sim::evaluateTrack(simulator, *rows, a.threshold);
+  auto ev = sim::evaluateTrack(simulator, *rows, a.threshold, a.fields);
   if (!ev) return commandError("evaluate", fmt::format("{}: {}", a.track, ev.error().message));
   std::string not_ok;
   long not_ok_rows = 0;
@@ -177,6 +178,9 @@ CommandRunner addEvaluateCommand(CLI::App& app) {
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
   cmd->add_option("--out", args->out, "Write per-row errors (CSV)");
+  cmd->add_flag("--fields", args->fields,
+                "The track was made from the recording's fields (`pulsetrack track --fields`): "
+                "its frame 2i+k is frame i's field k, k/2 of a frame later");
   return [args] { return runEvaluate(*args); };
 }
 

@@ -4,6 +4,7 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <array>
 #include <charconv>
 #include <chrono>
 #include <filesystem>
@@ -18,6 +19,7 @@
 #include "pulsetrack/tools/commands.hpp"
 #include "pulsetrack/tools/field_output.hpp"
 #include "pulsetrack/tools/image_pairs.hpp"
+#include "pulsetrack/vision/fields.hpp"
 #include "pulsetrack/vision/stereo_tracker.hpp"
 #include "pulsetrack/vision/tracking_session.hpp"
 
@@ -207,6 +209,7 @@ struct TrackArgs : CommonArgs {
   std::string left;
   std::string right;
   std::string video, left_video, right_video, layout = "sbs";
+  std::string fields;  // "", "tff" or "bff"
   std::string deformation;
   double fps = 10.0;
   double retry_interval = vision::SessionConfig{}.retry_interval_s;
@@ -350,42 +353,26 @@ int runTrack(const TrackArgs& a) {
   long prediction_rows = 0;
   std::vector<double> step_us;
   cv::Mat left, right;
+  // Interlaced video: each frame's two fields tracked as pairs of their own, half a frame apart.
+  const bool split = !a.fields.empty();
+  const double frame_s =
+      video    ? 1.0 / video->rate()
+      : reader ? (reader->manifest().nominal_fps > 0.0 ? 1.0 / reader->manifest().nominal_fps : 0.0)
+               : 1.0 / a.fps;
+  if (split && !(frame_s > 0.0))
+    return commandError("track", fmt::format("--fields: {} states no frame rate (manifest.toml "
+                                             "nominal_fps), so the fields' times are unknown",
+                                             a.input));
+  const auto order =
+      a.fields == "bff" ? vision::FieldOrder::kBottomFirst : vision::FieldOrder::kTopFirst;
+  std::array<cv::Mat, 2> field_l, field_r;
   int initial = -1;
   uint64_t reason_seen = 0, range_seen = 0;
-  for (size_t i = 0; video || i < n; ++i) {
-    long frame = static_cast<long>(i);
-    double t = static_cast<double>(i) / a.fps;
-    auto t_ns = static_cast<int64_t>(std::llround(t * 1e9));
-    uint64_t seq = i;
-    if (video) {
-      record::VideoFrame vf;
-      auto more = video->next(left, right, vf);
-      if (!more) return commandError("track", more.error().message);
-      if (!*more) {
-        n = i;
-        break;
-      }
-      frame = static_cast<long>(vf.frame);
-      seq = vf.frame;  // a dropped frame is a gap, as a missing trigger is
-      t_ns = vf.t_ns;
-      t = static_cast<double>(t_ns) * 1e-9;
-    } else if (reader) {
-      if (auto ok = reader->read(i, left, right); !ok)
-        return commandError("track", ok.error().message);
-      frame = static_cast<long>(reader->meta(i).frame);
-      seq = reader->meta(i).trigger_seq;
-      t_ns = reader->meta(i).t_left_ns;
-      t = static_cast<double>(t_ns) * 1e-9;
-    } else {
-      auto l = readGrey(pairs[i].first);
-      if (!l) return commandError("track", l.error().message);
-      auto r = readGrey(pairs[i].second);
-      if (!r) return commandError("track", r.error().message);
-      left = *l;
-      right = *r;
-    }
+  // One pair (a frame, or one of its fields) through the session, into the outputs.
+  const auto track_pair = [&](const cv::Mat& l, const cv::Mat& r, long frame, double t,
+                              uint64_t seq, int64_t t_ns) -> int {
     const auto t0 = std::chrono::steady_clock::now();
-    const vision::PairResult& pr = session.process(left, right, seq, t_ns);
+    const vision::PairResult& pr = session.process(l, r, seq, t_ns);
     if (!pr.detected) {
       step_us.push_back(
           std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count());
@@ -431,7 +418,57 @@ int runTrack(const TrackArgs& a) {
         return commandError("track", ok.error().message);
     }
     // As the daemon does once a pair's result is out: match some features' stereo again.
-    session.afterPublish(left, right);
+    session.afterPublish(l, r);
+    return 0;
+  };
+  for (size_t i = 0; video || i < n; ++i) {
+    long frame = static_cast<long>(i);
+    double t = static_cast<double>(i) / a.fps;
+    auto t_ns = static_cast<int64_t>(std::llround(t * 1e9));
+    uint64_t seq = i;
+    if (video) {
+      record::VideoFrame vf;
+      auto more = video->next(left, right, vf);
+      if (!more) return commandError("track", more.error().message);
+      if (!*more) {
+        n = i;
+        break;
+      }
+      frame = static_cast<long>(vf.frame);
+      seq = vf.frame;  // a dropped frame is a gap, as a missing trigger is
+      t_ns = vf.t_ns;
+      t = static_cast<double>(t_ns) * 1e-9;
+    } else if (reader) {
+      if (auto ok = reader->read(i, left, right); !ok)
+        return commandError("track", ok.error().message);
+      frame = static_cast<long>(reader->meta(i).frame);
+      seq = reader->meta(i).trigger_seq;
+      t_ns = reader->meta(i).t_left_ns;
+      t = static_cast<double>(t_ns) * 1e-9;
+    } else {
+      auto l = readGrey(pairs[i].first);
+      if (!l) return commandError("track", l.error().message);
+      auto r = readGrey(pairs[i].second);
+      if (!r) return commandError("track", r.error().message);
+      left = *l;
+      right = *r;
+    }
+    if (!split) {
+      if (const int rc = track_pair(left, right, frame, t, seq, t_ns); rc != 0) return rc;
+    } else {
+      vision::splitFields(left, order, field_l[0], field_l[1]);
+      vision::splitFields(right, order, field_r[0], field_r[1]);
+      // Field k of frame i: CSV frame 2i + k, sequence 2 seq + k, k/2 of a frame later.
+      for (int k = 0; k < 2; ++k) {
+        const auto kk = static_cast<size_t>(k);
+        const double tk = t + 0.5 * frame_s * k;
+        const int64_t tk_ns = t_ns + std::llround(0.5e9 * frame_s * k);
+        if (const int rc =
+                track_pair(field_l[kk], field_r[kk], 2 * frame + k, tk, 2 * seq + kk, tk_ns);
+            rc != 0)
+          return rc;
+      }
+    }
     if (!a.quiet && (i + 1) % 50 == 0) {
       fmt::print(stderr, "frame {}/{}: {} of {} features ok\n", i + 1,
                  video ? std::string("?") : std::to_string(n), session.tracker().okCount(),
@@ -518,6 +555,12 @@ CommandRunner addTrackCommand(CLI::App& app) {
   cmd->add_option("--left-video", args->left_video, "The left view's video file");
   cmd->add_option("--right-video", args->right_video,
                   "The right view's video file (pairs by time stamp with the left's)");
+  cmd->add_option("--fields", args->fields,
+                  "Interlaced video (SD endoscope cameras): track each frame's two fields as pairs "
+                  "of their own, half a frame apart, each made full height (the other field's rows "
+                  "interpolated); tff: the top field (even rows) first, bff: the bottom. The CSVs' "
+                  "frame 2i+k is frame i's field k (docs/video.md)")
+      ->check(CLI::IsMember({"tff", "bff"}));
   cmd->add_option("--fps", args->fps, "Frame rate of an image sequence")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();

@@ -31,8 +31,11 @@ struct CameraEffectsSpec {
 class CameraEffects {
  public:
   CameraEffects(const CameraEffectsSpec& spec, cv::Size image_size, unsigned seed);
-  // radiance (CV_32FC1) -> 8-bit image. `camera` 0/1 picks the noise stream.
-  void apply(const cv::Mat& radiance, double t, cv::Mat& out);
+  // radiance (CV_32FC1) -> 8-bit image. `camera` 0/1 picks the noise stream. `blurred`: the
+  // radiance went through defocus() already (an interlaced frame's fields, each on its own).
+  void apply(const cv::Mat& radiance, double t, cv::Mat& out, bool blurred = false);
+  // The lens's defocus blur alone, in place.
+  void defocus(cv::Mat& radiance) const;
   // Whether frame `index` is dropped (deterministic per index).
   [[nodiscard]] bool dropped(uint64_t index) const;
   [[nodiscard]] double gain(double t) const;

@@ -47,8 +47,10 @@ struct Evaluation {
   std::vector<RowError> rows;
 };
 
+// `fields`: the track was made from the recording's fields (`pulsetrack track --fields`): row
+// frame 2i + k is frame i's k-th field, k/2 of a frame later (a cortex scene).
 vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim,
                                          const std::vector<record::TrackRow>& rows,
-                                         double outlier_threshold_mm = 0.5);
+                                         double outlier_threshold_mm = 0.5, bool fields = false);
 
 }  // namespace pulsetrack::sim

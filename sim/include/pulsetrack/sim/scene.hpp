@@ -27,6 +27,11 @@ struct SceneSpec {
   int frames = 0;  // 0: the scene's own count (cortex: 10 s; plate: its whole protocol)
   unsigned seed = 1;
   int supersample = 2;
+  // The cameras deliver interlaced video (SD endoscope cameras): each frame's even rows (the top
+  // field) are exposed at the frame's time, its odd rows half a frame later. Cortex scenes only.
+  // Each field's exposure is blurred by the lens on its own; then the woven frame takes the
+  // sensor's noise and the compression (which mixes the fields, as a recorder's does).
+  bool interlaced = false;
   CameraEffectsSpec camera;  // both cameras ([camera]), or the left one when camera_right is set
   std::optional<CameraEffectsSpec> camera_right;  // [camera] with [camera.right]'s keys over it
   CortexSpec cortex;
@@ -70,6 +75,7 @@ class StereoSimulator {
   std::unique_ptr<CortexScene> cortex_;
   std::unique_ptr<PlateScene> plate_;
   cv::Mat radiance_l_, radiance_r_;
+  cv::Mat field_l_, field_r_;  // the later field's radiance (interlaced)
 };
 
 // Writes the scene as a recording (docs/recording-format.md) with scene.toml and truth/.
