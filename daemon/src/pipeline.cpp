@@ -376,6 +376,7 @@ void Pipeline::trackLoop() {
   sc.retry_interval_s = config_.retry_interval_s;
   sc.velocity_window_s = config_.velocity_window_s;
   sc.prediction = config_.prediction;
+  sc.scale = config_.tracker_scale;
   vision::TrackingSession session(source_->rig(), sc);
   uint64_t seen = 0, reason_seen = UINT64_MAX;
   bool stopped = false;

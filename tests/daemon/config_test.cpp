@@ -26,6 +26,7 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_DOUBLE_EQ(c->fps, 30.0);
   EXPECT_EQ(c->tracker.stereo_refresh, 25);
   EXPECT_EQ(c->tracker.template_refresh, 25);
+  EXPECT_EQ(c->tracker_scale, 0.0);  // auto
   EXPECT_EQ(c->sim_faults.missing_trigger_every + c->sim_faults.left_drop_every +
                 c->sim_faults.right_miss_every,
             0);  // no injected faults as shipped
@@ -196,6 +197,7 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
               "pulsetrackd.toml:3: tracker.stereo_refresh");
   expectError("[tracker]\nmax_features = 50\ntemplate_refresh = 51\n",
               "pulsetrackd.toml:3: tracker.template_refresh");
+  expectError("[tracker]\nscale = \"0.7\"\n", "pulsetrackd.toml:2: tracker.scale");
   expectError("[source.faults]\nright_drop_every = 3\n",
               "unknown key 'source.faults.right_drop_every'");
   expectError(

@@ -213,6 +213,31 @@ TEST(TrackerRealtime, TheSessionAllocatesNothingPerPairEvenWithABadRoi) {
     std::cout << "field: " << field.cols() << "x" << field.rows() << " grid, "
               << field.factorizations() - factorizations << " factorizations in 10 pairs\n";
   }
+  {  // tracked at half the images' size: each pair resampled into buffers sized at detection,
+     // the features mapped back to the images' pixels in a vector reserved at construction
+    SessionConfig c;
+    c.roi = {{560, 380, 260, 220}, {540, 370, 260, 220}};
+    c.scale = 0.5;
+    TrackingSession session(s.rig(), c);
+    const PairResult& first = session.process(left[0], right[0], 0, t_ns(0));
+    ASSERT_EQ(session.last().state, SessionState::kTracking) << session.reason();
+    EXPECT_EQ(session.scale(), 0.5);
+    ASSERT_TRUE(field.update(first.features, first.detected, first.deformation.detections));
+    session.afterPublish(left[0], right[0]);
+    const PairResult& second = session.process(left[1], right[1], 1, t_ns(1));  // warm-up
+    ASSERT_TRUE(field.update(second.features, second.detected, second.deformation.detections));
+    predicted.setZero(field.points(), 3);
+    session.afterPublish(left[1], right[1]);
+    run(session, 2, 12);
+    EXPECT_EQ(g_allocations.load(), 0) << "allocations in 10 pairs tracked at half size";
+    EXPECT_EQ(g_locks.load(), 0);
+    ASSERT_TRUE(session.last().deformation.valid);
+    for (const Feature& f : session.last().features) {  // in the full-size ROI, not the half's
+      if (f.status != FeatureStatus::kOk) continue;
+      EXPECT_TRUE(cv::Rect(540, 360, 300, 260).contains(cv::Point(f.left)))
+          << f.left[0] << "," << f.left[1];
+    }
+  }
   {  // an ROI outside the image: refused with its reason, every pair free
     SessionConfig c;
     c.roi = {{1300, 1000, 200, 200}, {540, 370, 260, 220}};

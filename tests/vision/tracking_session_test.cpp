@@ -22,6 +22,7 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 
+#include "pulsetrack/sim/paper_rig.hpp"
 #include "pulsetrack/sim/scene.hpp"
 #include "pulsetrack/sim/session_truth.hpp"
 #include "pulsetrack/vision/deformation_field.hpp"
@@ -332,6 +333,32 @@ namespace {
 // The right ROI derived from a left one (the console's ROI drawing): every point the left ROI sees
 // between depth - tol and depth + tol lands inside it, by OpenCV's own undistortPoints and
 // projectPoints on the rig file (nothing of the rig code under test), and it is not much larger.
+// The working scale: only 0 (auto), 1 and 0.5 are taken; another is refused as a bad ROI is
+// (nothing tracked, the reason names it). The half-size rig projects a point where the full one
+// does, halved about the pixels' centres ((x + 0.5) / 2 - 0.5).
+TEST(TrackingSession, AScaleOtherThanAutoOneOrHalfIsRefusedAndTheHalfRigProjectsHalved) {
+  const StereoRig rig = sim::paperRig();
+  SessionConfig c;
+  c.roi = {{560, 380, 260, 220}, {540, 370, 260, 220}};
+  c.scale = 0.7;
+  TrackingSession session(rig, c);
+  cv::Mat img(rig.left.imageSize(), CV_8UC1, cv::Scalar(128));
+  (void)session.process(img, img, 0, 0);
+  EXPECT_EQ(session.last().state, SessionState::kNoFeatures);
+  EXPECT_EQ(session.reason(), "scale 0.7: must be 0 (chosen at the first detection), 1 or 0.5");
+  EXPECT_EQ(session.detectionAttempts(), 0);
+  const StereoRig half = TrackingSession::scaledRig(rig, 0.5);
+  EXPECT_EQ(half.left.imageSize(), cv::Size(680, 512));
+  const cv::Vec3d p(12.0, -7.0, 450.0);
+  for (const auto& [full_cam, half_cam] :
+       {std::pair{&rig.left, &half.left}, std::pair{&rig.right, &half.right}}) {
+    const cv::Vec3d pc = full_cam == &rig.left ? p : rig.r * p + rig.t;
+    const cv::Vec2d a = full_cam->project(pc), b = half_cam->project(pc);
+    EXPECT_NEAR(b[0], (a[0] + 0.5) / 2 - 0.5, 1e-9);
+    EXPECT_NEAR(b[1], (a[1] + 0.5) / 2 - 0.5, 1e-9);
+  }
+}
+
 TEST(TrackingSession, TheRightRoiForALeftOneHoldsWhatTheLeftSeesAtThoseDepths) {
   const std::string path = std::string(PULSETRACK_SOURCE_DIR) + "/config/rigs/paper-rig.yaml";
   auto rig = loadRig(path);

@@ -210,6 +210,7 @@ struct TrackArgs : CommonArgs {
   std::string right;
   std::string video, left_video, right_video, layout = "sbs";
   std::string fields;  // "", "tff" or "bff"
+  std::string scale = "auto";
   std::string deformation;
   double fps = 10.0;
   double retry_interval = vision::SessionConfig{}.retry_interval_s;
@@ -313,6 +314,7 @@ int runTrack(const TrackArgs& a) {
   sc.search = *search;
   sc.retry_interval_s = a.retry_interval;
   sc.velocity_window_s = a.velocity_window;
+  sc.scale = a.scale == "auto" ? 0.0 : std::stod(a.scale);
   vision::TrackingSession session(rig, sc);
   // The dense field and the targets' answers (the daemon's field, the same code).
   std::vector<cv::Vec3d> targets;
@@ -512,6 +514,8 @@ int runTrack(const TrackArgs& a) {
   if (session.rangeSerial() > 0)
     fmt::print("stereo search     {}\n", session.stereoRange().summary());
   if (initial >= 0) fmt::print("gates             {}\n", session.tracker().fittedGates().summary());
+  if (initial >= 0 && session.scale() != 1.0)
+    fmt::print("scale             {}\n", session.scaleSummary());
   if (field_out) {
     auto lines = field_out->finish();
     if (!lines) return commandError("track", lines.error().message);
@@ -561,6 +565,13 @@ CommandRunner addTrackCommand(CLI::App& app) {
                   "interpolated); tff: the top field (even rows) first, bff: the bottom. The CSVs' "
                   "frame 2i+k is frame i's field k (docs/video.md)")
       ->check(CLI::IsMember({"tff", "bff"}));
+  cmd->add_option("--scale", args->scale,
+                  "The scale the tracker works at: 1, 0.5 (half size: for video whose detail is "
+                  "several pixels wide, e.g. SD upscaled to 720x576), or auto (1, or 0.5 where it "
+                  "detects 1.25x as many features; said). Positions are always in the images' "
+                  "pixels")
+      ->check(CLI::IsMember({"auto", "1", "0.5"}))
+      ->capture_default_str();
   cmd->add_option("--fps", args->fps, "Frame rate of an image sequence")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();

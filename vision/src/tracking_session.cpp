@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstring>
 #include <map>
+#include <opencv2/imgproc.hpp>
 
 #include "pulsetrack/vision/affine_refiner.hpp"
 
@@ -50,7 +51,135 @@ TrackingSession::TrackingSession(const StereoRig& rig, const SessionConfig& conf
   scratch_nb_d_.assign(n * neighbours_, cv::Vec3d(0, 0, 0));
   old_to_new_.assign(n, -1);
   ring_.assign(kRing, Sample{0.0, {0, 0, 0}});
+  out_.reserve(n);
   setRoi(config_.roi, config_.depth_tolerance_mm);
+}
+
+StereoRig TrackingSession::scaledRig(const StereoRig& rig, double scale) {
+  StereoRig out = rig;
+  for (CameraModel* cam : {&out.left, &out.right}) {
+    const cv::Size from = cam->imageSize();
+    cv::Matx33d k = cam->k();
+    k(0, 0) *= scale;
+    k(0, 1) *= scale;
+    k(0, 2) = (k(0, 2) + 0.5) * scale - 0.5;
+    k(1, 1) *= scale;
+    k(1, 2) = (k(1, 2) + 0.5) * scale - 0.5;
+    const cv::Size size(static_cast<int>(from.width * scale),
+                        static_cast<int>(from.height * scale));
+    *cam = CameraModel(k, cam->dist().data(), cam->numDistortion(), size);
+  }
+  return out;
+}
+
+Result<void> TrackingSession::checkScale(double scale) {
+  if (scale == 0.0 || scale == 1.0 || scale == 0.5) return {};
+  return fail(
+      fmt::format("scale {:g}: must be 0 (chosen at the first detection), 1 or 0.5", scale));
+}
+
+void TrackingSession::setScale(double scale) {
+  scale_ = scale;
+  tracker_ = StereoTracker(scale == 1.0 ? rig_ : scaledRig(rig_, scale), config_.tracker);
+}
+
+void TrackingSession::toWork(const cv::Mat& left, const cv::Mat& right) {
+  if (scale_ == 1.0) return;
+  // Half size: each pixel the mean of a 2x2 block (an odd last row or column left out), so a
+  // pixel centre x of the half image is 2x + 0.5 of the full one. A plain loop: OpenCV's
+  // INTER_AREA allocates its tables on every call.
+  for (const auto& [from, to] : {std::pair{&left, &work_l_}, std::pair{&right, &work_r_}}) {
+    to->create(from->rows / 2, from->cols / 2, CV_8UC1);
+    for (int y = 0; y < to->rows; ++y) {
+      const uint8_t* a = from->ptr<uint8_t>(2 * y);
+      const uint8_t* b = from->ptr<uint8_t>(2 * y + 1);
+      uint8_t* o = to->ptr<uint8_t>(y);
+      for (int x = 0; x < to->cols; ++x) {
+        o[x] = static_cast<uint8_t>((a[2 * x] + a[2 * x + 1] + b[2 * x] + b[2 * x + 1] + 2) / 4);
+      }
+    }
+  }
+}
+
+cv::Rect TrackingSession::roiToWork(const cv::Rect& r) const noexcept {
+  if (scale_ == 1.0 || r == cv::Rect()) return r;
+  const int x0 = static_cast<int>(std::lround(r.x * scale_));
+  const int y0 = static_cast<int>(std::lround(r.y * scale_));
+  const int x1 = static_cast<int>(std::lround((r.x + r.width) * scale_));
+  const int y1 = static_cast<int>(std::lround((r.y + r.height) * scale_));
+  return {x0, y0, x1 - x0, y1 - y0};
+}
+
+void TrackingSession::rangeToImage() noexcept {
+  if (scale_ == 1.0) return;
+  const auto rect = [&](const cv::Rect& r) {
+    if (r == cv::Rect()) return r;
+    const int x0 = static_cast<int>(std::lround(r.x / scale_));
+    const int y0 = static_cast<int>(std::lround(r.y / scale_));
+    return cv::Rect(x0, y0, static_cast<int>(std::lround((r.x + r.width) / scale_)) - x0,
+                    static_cast<int>(std::lround((r.y + r.height) / scale_)) - y0);
+  };
+  range_.left = rect(range_.left);
+  range_.right = rect(range_.right);
+  range_.right_outline =
+      cv::Rect2d(range_.right_outline.x / scale_, range_.right_outline.y / scale_,
+                 range_.right_outline.width / scale_, range_.right_outline.height / scale_);
+  range_.disparity_lo_px /= scale_;
+  range_.disparity_hi_px /= scale_;
+  range_.vertical_px /= scale_;
+  range_.vertical_spread_px /= scale_;
+  if (range_.region) {
+    range_.region->found = rect(range_.region->found);
+    range_.region->roi = rect(range_.region->roi);
+  }
+}
+
+std::span<const Feature> TrackingSession::features() noexcept {
+  const std::span<const Feature> f = tracker_.features();
+  if (scale_ == 1.0) return f;
+  out_.assign(f.begin(), f.end());  // within the capacity reserved: no allocation
+  for (Feature& x : out_) {
+    x.left = toImage(x.left);
+    x.right = toImage(x.right);
+    x.judged_left = toImage(x.judged_left);
+    x.judged_right = toImage(x.judged_right);
+    x.epipolar_px /= scale_;
+  }
+  return out_;
+}
+
+std::string TrackingSession::scaleSummary() const {
+  if (scale_ == 1.0) return "";
+  return fmt::format(
+      "tracked at {:g} of the images' size ({}x{} px; {}): positions reported in "
+      "the images' pixels",
+      scale_, tracker_.rig().left.imageSize().width, tracker_.rig().left.imageSize().height,
+      config_.scale > 0.0 ? "as configured" : "chosen at the first detection: more features there");
+}
+
+bool TrackingSession::detectFirst(const cv::Mat& left, const cv::Mat& right) {
+  const bool autoscale = !(config_.scale > 0.0);
+  setScale(autoscale ? 1.0 : config_.scale);
+  toWork(left, right);
+  const bool found = detect(workLeft(left), workRight(right), false);
+  const int ceiling = std::max(1, config_.tracker.max_features);
+  const int at_one = found ? tracker_.okCount() : 0;
+  if (!autoscale || 10 * at_one >= 9 * ceiling || left.cols / 2 < config_.auto_scale_min_width)
+    return found;
+  // Half the size too: kept when it detects at least 1.25 times as many.
+  StereoTracker kept = std::move(tracker_);
+  const StereoRange kept_range = range_;
+  const std::string kept_reason(reason());
+  setScale(0.5);
+  toWork(left, right);
+  const bool half = detect(work_l_, work_r_, false);
+  --attempts_;  // one attempt, at two scales
+  if (half && 4 * tracker_.okCount() >= 5 * std::max(at_one, 1)) return true;
+  tracker_ = std::move(kept);
+  range_ = kept_range;
+  scale_ = 1.0;
+  setReason(kept_reason);
+  return found;
 }
 
 Result<void> TrackingSession::checkRoi(const StereoRig& rig, const Roi& roi,
@@ -123,6 +252,7 @@ void TrackingSession::setRoi(const Roi& roi, double depth_tolerance_mm) {
   initialized_ = false;
   have_attempt_ = false;
   auto ok = checkRoi(rig_, roi, depth_tolerance_mm);
+  if (ok) ok = checkScale(config_.scale);  // a bad scale is refused as a bad ROI is
   roi_ok_ = ok.has_value();
   setReason(roi_ok_ ? "waiting for the first pair" : ok.error().message);
 }
@@ -216,21 +346,23 @@ void TrackingSession::markReference() noexcept {
 
 bool TrackingSession::detect(const cv::Mat& left, const cv::Mat& right, bool redetection) {
   ++attempts_;
-  Roi roi = config_.roi;
+  Roi roi{roiToWork(config_.roi.left), roiToWork(config_.roi.right)};
   double tolerance = config_.depth_tolerance_mm;
   if (!redetection && roi.right == cv::Rect()) {
-    auto found = findStereoRoi(rig_, left, right, roi.left, 2 * kAffineSide, config_.search);
+    auto found =
+        findStereoRoi(tracker_.rig(), left, right, roi.left, 2 * kAffineSide, config_.search);
     if (!found) {
       setReason(fmt::format("{}; detection is tried again every {:g} s", found.error().message,
                             config_.retry_interval_s));
       return false;
     }
     range_ = *found;
+    rangeToImage();  // said in the images' pixels
     ++range_serial_;
     roi.left = found->left;
     roi.right = found->right;
     tolerance = found->tolerance_mm;
-    if (auto usable = checkRoi(rig_, roi, tolerance); !usable) {
+    if (auto usable = checkRoi(tracker_.rig(), roi, tolerance); !usable) {
       setReason(fmt::format("left ROI {}: {} ({})", roiText(roi.left), usable.error().message,
                             found->summary()));
       return false;
@@ -285,14 +417,15 @@ const PairResult& TrackingSession::process(const cv::Mat& left, const cv::Mat& r
     have_attempt_ = true;
     last_attempt_ns_ = t_ns;
     redetect_requested_ = false;
-    if (!detect(left, right, false)) return result_;
+    if (!detectFirst(left, right)) return result_;
     initialized_ = true;
     resetSignal();
     t0_ns_ = t_ns;
     detections_ = 1;
     result_.detected = true;
   } else {
-    tracker_.track(left, right);
+    toWork(left, right);
+    tracker_.track(workLeft(left), workRight(right));
     deformation(t_ns);
     if (redetect_requested_ || tracker_.needsRedetection()) {
       redetect_requested_ = false;
@@ -300,7 +433,7 @@ const PairResult& TrackingSession::process(const cv::Mat& left, const cv::Mat& r
       // just measured with the old ones. With none ok there is nothing to fill around (the
       // hidden ones cannot be predicted: their positions are stale and would keep new corners
       // out of their regions): a fresh detection, its stereo search included, under new ids.
-      if (detect(left, right, tracker_.okCount() > 0)) {
+      if (detect(workLeft(left), workRight(right), tracker_.okCount() > 0)) {
         ++redetections_;
         ++detections_;
         result_.detected = true;
@@ -312,7 +445,7 @@ const PairResult& TrackingSession::process(const cv::Mat& left, const cv::Mat& r
       }
     }
     result_.state = SessionState::kTracking;
-    result_.features = tracker_.features();
+    result_.features = features();
     result_.deformation.detections = detections_;
     return result_;
   }
@@ -320,7 +453,7 @@ const PairResult& TrackingSession::process(const cv::Mat& left, const cv::Mat& r
   markReference();
   deformation(t_ns);
   result_.state = SessionState::kTracking;
-  result_.features = tracker_.features();
+  result_.features = features();
   result_.deformation.detections = detections_;
   return result_;
 }
@@ -481,7 +614,8 @@ void TrackingSession::deformation(int64_t t_ns) noexcept {
 }
 
 void TrackingSession::afterPublish(const cv::Mat& left, const cv::Mat& right) noexcept {
-  if (initialized_ && !stopped_) tracker_.refreshStereo(left, right);
+  // At a working scale other than 1, the pair process() just resampled (the same pair).
+  if (initialized_ && !stopped_) tracker_.refreshStereo(workLeft(left), workRight(right));
 }
 
 }  // namespace pulsetrack::vision

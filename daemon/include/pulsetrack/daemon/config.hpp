@@ -69,6 +69,7 @@ struct DaemonConfig {
   double depth_tolerance_mm = 20.0;
   double retry_interval_s = 1.0;    // between detections that found nothing
   double velocity_window_s = 0.25;  // the published velocity's least-squares window
+  double tracker_scale = 0.0;       // [tracker] scale: 0 auto, 1, 0.5 (SessionConfig::scale)
   vision::TrackerConfig tracker;
   vision::FieldConfig field;            // [field]: the dense deformation field (rt/.../field)
   vision::PredictionConfig prediction;  // [prediction]: latency compensation, with deformation

@@ -324,6 +324,7 @@ struct StereoCandidate {
 class StereoTracker {
  public:
   StereoTracker(const StereoRig& rig, const TrackerConfig& config);
+  [[nodiscard]] const StereoRig& rig() const noexcept { return rig_; }
 
   // Detects and stereo-matches features in the first pair. Returns how many are ok. Fails on
   // an ROI outside the image or images that are not 8-bit grey of the rig's size.

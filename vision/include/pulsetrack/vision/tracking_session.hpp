@@ -37,6 +37,7 @@
 #include <cstdint>
 #include <opencv2/core.hpp>
 #include <span>
+#include <string>
 #include <string_view>
 #include <vector>
 
@@ -59,6 +60,17 @@ struct SessionConfig {
   double retry_interval_s = 1.0;    // between detection attempts that found nothing
   double velocity_window_s = 0.25;  // the velocity's least-squares window
   PredictionConfig prediction;      // the displacement at t + horizon (MotionPredictor)
+  // The scale the tracker works at. Its templates (15x15, 23x23), windows and spacings are
+  // fixed in pixels, chosen on images whose detail is a few pixels across (the paper's
+  // 1360x1024, SD endoscope video); video whose detail is twice as wide (SD upscaled to 720x576,
+  // a soft 1080p endoscope) gives those templates too little of it. 1: the images as they are;
+  // 0.5: at half size (2x2 means; the rig's intrinsics with them); 0: chosen at the first
+  // detection: at 1, and where that does not fill 90 % of the feature ceiling and half the size
+  // stays at least auto_scale_min_width px wide, at 1/2 too; 1/2 is kept when it detects at
+  // least 1.25 times as many features. Positions are reported in the images' pixels either way.
+  // Other values are refused (checkScale).
+  double scale = 0.0;
+  int auto_scale_min_width = 320;
 };
 
 struct Deformation {
@@ -124,7 +136,8 @@ class TrackingSession {
   // detects (at most once per retry interval while detection finds nothing).
   const PairResult& process(const cv::Mat& left, const cv::Mat& right, uint64_t frame,
                             int64_t t_ns);
-  // After the pair's result has been handed on: the stereo refresh (no allocation).
+  // After the pair's result has been handed on: the stereo refresh (no allocation). The same
+  // pair as the last process().
   void afterPublish(const cv::Mat& left, const cv::Mat& right) noexcept;
 
   // Why nothing is tracked ("" while tracking): valid until the next call; no allocation.
@@ -139,6 +152,15 @@ class TrackingSession {
   // searched, range_serial() bumped each time.
   [[nodiscard]] const StereoRange& stereoRange() const noexcept { return range_; }
   [[nodiscard]] uint64_t rangeSerial() const noexcept { return range_serial_; }
+  // The scale the tracker works at (SessionConfig::scale; chosen at the first detection when
+  // auto), and a line that says it ("" at 1).
+  [[nodiscard]] double scale() const noexcept { return scale_; }
+  [[nodiscard]] std::string scaleSummary() const;
+  // The rig at a resampled image size: focal lengths and principal points follow the pixels'
+  // centres ((c + 0.5) s - 0.5), distortion and extrinsics stay.
+  static StereoRig scaledRig(const StereoRig& rig, double scale);
+  // SessionConfig::scale: 0 (auto), 1 or 0.5; the error says so.
+  static Result<void> checkScale(double scale);
 
  private:
   void setReason(std::string_view text) noexcept;
@@ -146,10 +168,32 @@ class TrackingSession {
   void markReference() noexcept;  // every feature's displacement so far is the reference
   void deformation(int64_t t_ns) noexcept;
   bool detect(const cv::Mat& left, const cv::Mat& right, bool redetection);
+  // The first detection: at the configured scale, or (auto) at the better of 1 and 1/2.
+  bool detectFirst(const cv::Mat& left, const cv::Mat& right);
+  void setScale(double scale);
+  // The pair at the working scale (the images themselves at 1; else resampled into work_*_).
+  void toWork(const cv::Mat& left, const cv::Mat& right);
+  [[nodiscard]] const cv::Mat& workLeft(const cv::Mat& left) const noexcept {
+    return scale_ == 1.0 ? left : work_l_;
+  }
+  [[nodiscard]] const cv::Mat& workRight(const cv::Mat& right) const noexcept {
+    return scale_ == 1.0 ? right : work_r_;
+  }
+  [[nodiscard]] cv::Vec2d toImage(const cv::Vec2d& p) const noexcept {
+    return {(p[0] + 0.5) / scale_ - 0.5, (p[1] + 0.5) / scale_ - 0.5};
+  }
+  [[nodiscard]] cv::Rect roiToWork(const cv::Rect& r) const noexcept;
+  void rangeToImage() noexcept;  // range_'s pixels from the working scale to the images'
+  std::span<const Feature> features() noexcept;  // the tracker's, in the images' pixels
 
   StereoTracker tracker_;
   StereoRig rig_;
   SessionConfig config_;
+  // The working scale (1, or SessionConfig::scale, or auto's choice) and the pair there; out_
+  // holds the features in the images' pixels.
+  double scale_ = 1.0;
+  cv::Mat work_l_, work_r_;
+  std::vector<Feature> out_;
   PairResult result_;
   bool initialized_ = false, stopped_ = false, roi_ok_ = true, redetect_requested_ = false;
   bool have_attempt_ = false;
