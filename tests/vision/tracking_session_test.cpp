@@ -359,6 +359,32 @@ TEST(TrackingSession, AScaleOtherThanAutoOneOrHalfIsRefusedAndTheHalfRigProjects
   }
 }
 
+// A fresh detection (start(), a new ROI) gives new ids whatever the working scale: the tracker
+// made for a scale continues the ids of the one before (the daemon's subscribers tell a new
+// feature set by them).
+TEST(TrackingSession, AFreshDetectionAtAnotherScaleGivesNewIds) {
+  sim::SceneSpec spec;
+  spec.kind = sim::SceneKind::kCortex;
+  spec.supersample = 1;
+  sim::StereoSimulator s(spec, sim::paperRig());
+  cv::Mat left, right;
+  s.render(0, left, right);
+  SessionConfig c;
+  c.roi = {{560, 380, 260, 220}, {540, 370, 260, 220}};
+  c.scale = 0.5;
+  TrackingSession session(s.rig(), c);
+  const PairResult& first = session.process(left, right, 0, 0);
+  ASSERT_EQ(first.state, SessionState::kTracking) << session.reason();
+  ASSERT_FALSE(first.features.empty());
+  int max_id = -1;
+  for (const Feature& f : first.features) max_id = std::max(max_id, f.id);
+  session.start();
+  const PairResult& again = session.process(left, right, 1, 100'000'000);
+  ASSERT_EQ(again.state, SessionState::kTracking) << session.reason();
+  ASSERT_TRUE(again.detected);
+  for (const Feature& f : again.features) EXPECT_GT(f.id, max_id);
+}
+
 TEST(TrackingSession, TheRightRoiForALeftOneHoldsWhatTheLeftSeesAtThoseDepths) {
   const std::string path = std::string(PULSETRACK_SOURCE_DIR) + "/config/rigs/paper-rig.yaml";
   auto rig = loadRig(path);

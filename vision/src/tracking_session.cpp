@@ -78,9 +78,10 @@ Result<void> TrackingSession::checkScale(double scale) {
       fmt::format("scale {:g}: must be 0 (chosen at the first detection), 1 or 0.5", scale));
 }
 
-void TrackingSession::setScale(double scale) {
+void TrackingSession::setScale(double scale, int next_id) {
   scale_ = scale;
   tracker_ = StereoTracker(scale == 1.0 ? rig_ : scaledRig(rig_, scale), config_.tracker);
+  tracker_.continueIds(next_id);
 }
 
 void TrackingSession::toWork(const cv::Mat& left, const cv::Mat& right) {
@@ -159,7 +160,8 @@ std::string TrackingSession::scaleSummary() const {
 
 bool TrackingSession::detectFirst(const cv::Mat& left, const cv::Mat& right) {
   const bool autoscale = !(config_.scale > 0.0);
-  setScale(autoscale ? 1.0 : config_.scale);
+  const int next_id = tracker_.nextId();  // a fresh detection's features are new ids
+  setScale(autoscale ? 1.0 : config_.scale, next_id);
   toWork(left, right);
   const bool found = detect(workLeft(left), workRight(right), false);
   const int ceiling = std::max(1, config_.tracker.max_features);
@@ -170,7 +172,7 @@ bool TrackingSession::detectFirst(const cv::Mat& left, const cv::Mat& right) {
   StereoTracker kept = std::move(tracker_);
   const StereoRange kept_range = range_;
   const std::string kept_reason(reason());
-  setScale(0.5);
+  setScale(0.5, next_id);
   toWork(left, right);
   const bool half = detect(work_l_, work_r_, false);
   --attempts_;  // one attempt, at two scales

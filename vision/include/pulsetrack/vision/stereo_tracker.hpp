@@ -325,6 +325,10 @@ class StereoTracker {
  public:
   StereoTracker(const StereoRig& rig, const TrackerConfig& config);
   [[nodiscard]] const StereoRig& rig() const noexcept { return rig_; }
+  // The id the next new feature gets; a tracker that takes over from another (a new working
+  // scale) continues its ids, so a fresh detection's features are new ids.
+  [[nodiscard]] int nextId() const noexcept { return next_id_; }
+  void continueIds(int next_id) noexcept { next_id_ = next_id; }
 
   // Detects and stereo-matches features in the first pair. Returns how many are ok. Fails on
   // an ROI outside the image or images that are not 8-bit grey of the rig's size.

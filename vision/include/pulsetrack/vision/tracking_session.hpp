@@ -170,7 +170,7 @@ class TrackingSession {
   bool detect(const cv::Mat& left, const cv::Mat& right, bool redetection);
   // The first detection: at the configured scale, or (auto) at the better of 1 and 1/2.
   bool detectFirst(const cv::Mat& left, const cv::Mat& right);
-  void setScale(double scale);
+  void setScale(double scale, int next_id);  // a new tracker at that scale
   // The pair at the working scale (the images themselves at 1; else resampled into work_*_).
   void toWork(const cv::Mat& left, const cv::Mat& right);
   [[nodiscard]] const cv::Mat& workLeft(const cv::Mat& left) const noexcept {
