@@ -30,6 +30,14 @@ struct Figures {
   int median_ok = 0;
 };
 
+// `pulsetrack evaluate`'s feature count and 3D RMS, as it prints them.
+void readEvaluation(const std::string& output, int& features, double& rms_mm) {
+  std::smatch m;
+  if (std::regex_search(output, m, std::regex("features +([0-9]+)"))) features = std::stoi(m[1]);
+  if (std::regex_search(output, m, std::regex("3D error +RMS ([0-9.]+) mm")))
+    rms_mm = std::stod(m[1]);
+}
+
 // Simulates the scene (unless done) and tracks it, with a left ROI or none (roi empty).
 Figures run(const test::TempDir& dir, const std::string& scene, const std::string& roi) {
   Figures f;
@@ -47,11 +55,7 @@ Figures run(const test::TempDir& dir, const std::string& scene, const std::strin
   EXPECT_EQ(r.exit_code, 0) << r.output;
   r = test::run(test::cli() + " evaluate --recording " + rec + " --track " + rec + ".csv");
   EXPECT_EQ(r.exit_code, 0) << r.output;
-  std::smatch m;
-  if (std::regex_search(r.output, m, std::regex("features +([0-9]+)")))
-    f.features = std::stoi(m[1]);
-  if (std::regex_search(r.output, m, std::regex("3D error +RMS ([0-9.]+) mm")))
-    f.rms_mm = std::stod(m[1]);
+  readEvaluation(r.output, f.features, f.rms_mm);
   auto rows = record::readTrackCsv(rec + ".csv");
   EXPECT_TRUE(rows) << rows.error().message;
   if (!rows) return f;
@@ -157,11 +161,7 @@ TEST(RealTexture, InterlacedVideoIsMeasuredByItsFields) {
     r = test::run(fmt::format("{} evaluate --recording {} --track {}{} --out {}-errors.csv",
                               test::cli(), rec, csv, w.evaluate_flag, csv));
     ASSERT_EQ(r.exit_code, 0) << r.output;
-    std::smatch m;
-    if (std::regex_search(r.output, m, std::regex("features +([0-9]+)")))
-      w.features = std::stoi(m[1]);
-    if (std::regex_search(r.output, m, std::regex("3D error +RMS ([0-9.]+) mm")))
-      w.rms_mm = std::stod(m[1]);
+    readEvaluation(r.output, w.features, w.rms_mm);
     w.lateral_mm = lateralMotionError(csv + "-errors.csv");
     auto rows = record::readTrackCsv(csv);
     ASSERT_TRUE(rows) << rows.error().message;
