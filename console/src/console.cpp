@@ -1,6 +1,7 @@
 #include "pulsetrack/console/console.hpp"
 
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 #include <openssl/rand.h>
 
 #include <atomic>
@@ -158,6 +159,9 @@ struct Console::Impl {
   dds::Topics topics;
   std::optional<dds::Writer> commander;
   std::string commander_error;  // why this console may not command (DDS Security), or ""
+  // The topics this console's enclave may not read (DDS Security: a monitor reads health only);
+  // the DDS thread's.
+  std::vector<std::string> read_denied;
   std::unique_ptr<httplib::SSLServer> server;
   int bound_port = 0;
   Hub hub;
@@ -398,12 +402,17 @@ void Console::Impl::link(Clock::time_point now) {
         where, seconds(*seen, now));
   else
     text = fmt::format("pulsetrackd on {}: health {:.1f} s ago", where, seconds(*seen, now));
+  if (!read_denied.empty() && participant) {
+    text += fmt::format("; this console's DDS Security permissions ({}) do not grant reading {}",
+                        participant->securityState(), fmt::join(read_denied, ", "));
+  }
   hub.publish("link",
               {{"daemon", up},
                {"dds", participant.has_value()},
                {"text", text},
                {"may_command", commander_error.empty()},
-               {"command_error", commander_error}},
+               {"command_error", commander_error},
+               {"read_denied", read_denied}},
               true);
 }
 
@@ -457,11 +466,14 @@ void Console::Impl::ddsLoop() {
   const auto reader = [&](const std::string& topic, const dds_topic_descriptor_t* type,
                           dds::Profile p) -> std::optional<dds::Reader> {
     auto r = dds::Reader::create(*participant, topic.c_str(), type, p);
-    if (!r) {
-      hub.publish("link", {{"daemon", false}, {"dds", false}, {"text", r.error().message}}, true);
+    if (r) return std::move(*r);
+    if (dds::notAllowedBySecurity(r.error())) {
+      // A role's limit, not a fault: the link says what this console cannot show.
+      read_denied.push_back(topic);
       return std::nullopt;
     }
-    return std::move(*r);
+    hub.publish("link", {{"daemon", false}, {"dds", false}, {"text", r.error().message}}, true);
+    return std::nullopt;
   };
   auto health =
       reader(topics.health, &pulsetrack_msgs_msg_dds__Health__desc, dds::Profile::kTransientLocal);
@@ -844,10 +856,14 @@ vision::Result<std::unique_ptr<Console>> Console::create(const ConsoleOptions& o
   // grant publishing on .../command gets no writer; it still shows the appliance, and says why.
   auto w = dds::Writer::create(*impl->participant, impl->topics.command.c_str(),
                                &pulsetrack_msgs_msg_dds__Command__desc, dds::Profile::kCommand);
-  if (w)
+  if (w) {
     impl->commander.emplace(std::move(*w));
-  else
+  } else if (dds::notAllowedBySecurity(w.error())) {
+    impl->commander_error = dds::notPermitted(*impl->participant, impl->topics.command, true) +
+                            " (commands need an enclave of the controller role: docs/security.md)";
+  } else {
     impl->commander_error = w.error().message;
+  }
   impl->server = std::make_unique<httplib::SSLServer>(options.cert.c_str(), options.key.c_str());
   if (!impl->server->is_valid()) {
     return fail(

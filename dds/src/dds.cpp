@@ -43,13 +43,23 @@ dds_qos_t* makeQos(Profile profile) {
 Result<dds_entity_t> makeTopic(const Participant& p, const char* topic,
                                const dds_topic_descriptor_t* type) {
   const dds_entity_t t = dds_create_topic(p.get(), type, topic, nullptr, nullptr);
-  if (t < 0)
-    return vision::fail(
-        fmt::format("DDS: cannot create topic {} ({}): {}", topic, type->m_typename, why(t)));
+  if (t < 0) {
+    return std::unexpected(vision::Error{
+        fmt::format("DDS: cannot create topic {} ({}): {}", topic, type->m_typename, why(t)), t});
+  }
   return t;
 }
 
 }  // namespace
+
+bool notAllowedBySecurity(const vision::Error& e) {
+  return e.code == DDS_RETCODE_NOT_ALLOWED_BY_SECURITY;
+}
+
+std::string notPermitted(const Participant& p, std::string_view topic, bool write) {
+  return fmt::format("DDS Security: this participant ({}) has no permission to {} {}",
+                     p.securityState(), write ? "publish on" : "read", topic);
+}
 
 Result<Topics> Topics::forNamespace(std::string_view ns) {
   if (!ns.empty() && ns.front() == '/') ns.remove_prefix(1);
@@ -170,8 +180,10 @@ Result<Writer> Writer::create(const Participant& p, const char* topic,
   dds_qos_t* qos = makeQos(profile);
   const dds_entity_t e = dds_create_writer(p.get(), *t, qos, nullptr);
   dds_delete_qos(qos);
-  if (e < 0)
-    return vision::fail(fmt::format("DDS: cannot create a writer on {}: {}", topic, why(e)));
+  if (e < 0) {
+    return std::unexpected(
+        vision::Error{fmt::format("DDS: cannot create a writer on {}: {}", topic, why(e)), e});
+  }
   w.writer_ = Entity(e);
   return w;
 }
@@ -205,8 +217,10 @@ Result<Reader> Reader::create(const Participant& p, const char* topic,
   dds_qos_t* qos = makeQos(profile);
   const dds_entity_t e = dds_create_reader(p.get(), *t, qos, nullptr);
   dds_delete_qos(qos);
-  if (e < 0)
-    return vision::fail(fmt::format("DDS: cannot create a reader on {}: {}", topic, why(e)));
+  if (e < 0) {
+    return std::unexpected(
+        vision::Error{fmt::format("DDS: cannot create a reader on {}: {}", topic, why(e)), e});
+  }
   r.reader_ = Entity(e);
   const dds_entity_t cond = dds_create_readcondition(e, DDS_ANY_STATE);
   const dds_entity_t ws = dds_create_waitset(p.get());

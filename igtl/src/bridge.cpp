@@ -371,11 +371,15 @@ void Bridge::Impl::ddsLoop() {
   const auto reader = [&](const std::string& topic, const dds_topic_descriptor_t* type,
                           dds::Profile p) -> std::optional<dds::Reader> {
     auto r = dds::Reader::create(*participant, topic.c_str(), type, p);
-    if (!r) {
+    if (r) return std::move(*r);
+    if (dds::notAllowedBySecurity(r.error())) {
+      // A role's limit (a monitor reads health only): its messages are not served.
+      fmt::print(stderr, "igtl: {}: its messages are not served\n",
+                 dds::notPermitted(*participant, topic, false));
+    } else {
       fmt::print(stderr, "igtl: {}: {}\n", topic, r.error().message);
-      return std::nullopt;
     }
-    return std::move(*r);
+    return std::nullopt;
   };
   auto health =
       reader(topics.health, &pulsetrack_msgs_msg_dds__Health__desc, dds::Profile::kTransientLocal);

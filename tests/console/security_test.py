@@ -1,9 +1,10 @@
 #!/usr/bin/python3
 """The console as a DDS Security participant: on a secured domain, a console whose enclave has
 the `controller` role commands the appliance; one whose enclave is only a `subscriber` shows the
-appliance but may not command it, and says why (the page and the API), while the daemon goes on.
+appliance but may not command it, and says why (the page and the API), while the daemon goes on;
+one whose enclave is a `monitor` (health only) shows health and says what it may not read.
 
-Real processes: pulsetrackd secured with scripts/security's keystore, two `pulsetrack console`s,
+Real processes: pulsetrackd secured with scripts/security's keystore, three `pulsetrack console`s,
 and a plain HTTPS client (urllib, trusting the keystore's CA) reading their Server-Sent Events.
 Exit 0 when every check passed, 1 on the first failure (named on stderr).
 """
@@ -114,6 +115,8 @@ def main():
         run([args.security, "add-participant", ks, "/pulsetrack/console", "--role", "controller"])
         run([args.security, "add-participant", ks, "/pulsetrack/wall_screen", "--role",
              "subscriber"])
+        run([args.security, "add-participant", ks, "/pulsetrack/nurse_display", "--role",
+             "monitor"])
         run([args.security, "tls", ks, "console"])
         users = os.path.join(tmp, "users")
         run([args.cli, "console-user", "--users", users, "--user", "surgeon"],
@@ -149,6 +152,9 @@ period_ms = 200
         viewer = Console(args, tmp, "wall_screen",
                          os.path.join(ks, "enclaves/pulsetrack/wall_screen"), *common)
         consoles.append(viewer)
+        monitor = Console(args, tmp, "nurse_display",
+                          os.path.join(ks, "enclaves/pulsetrack/nurse_display"), *common)
+        consoles.append(monitor)
 
         step = "1. the subscriber-role console says it may not command"
         if "may NOT command" not in viewer.banner:
@@ -164,6 +170,22 @@ period_ms = 200
             raise Failure(f"its stop answered {status} {body!r}")
         print(f"1. subscriber-role console: sees the daemon ({health['security_state']}), its stop "
               f"refused 403: {json.loads(body)['error'][:160]}")
+
+        if link.get("read_denied"):
+            raise Failure(f"the subscriber may read everything a console shows: {link}")
+
+        step = "1b. the monitor-role console shows health and says what it may not read"
+        _, mlink = monitor.events(lambda n, d: n == "link" and d.get("daemon"))
+        denied = mlink.get("read_denied", [])
+        want = ["rt/pulsetrack/features", "rt/pulsetrack/deformation", "rt/pulsetrack/field",
+                "rt/pulsetrack/left/image/compressed", "rt/pulsetrack/right/image/compressed"]
+        if sorted(denied) != sorted(want) or mlink["may_command"]:
+            raise Failure(f"its link event: {mlink}")
+        if "do not grant reading rt/pulsetrack/features" not in mlink["text"]:
+            raise Failure("its link text (the page's banner): " + mlink["text"])
+        _, mhealth = monitor.events(lambda n, d: n == "health" and d["state"] == "ok")
+        print(f"1b. monitor-role console: health {mhealth['state']}, the banner says: "
+              f"{mlink['text'][:200]}")
 
         step = "2. the controller-role console commands"
         if "may command" not in controller.banner:
@@ -187,7 +209,7 @@ period_ms = 200
         return 0
     except Failure as e:
         print(f"FAIL at {step}: {e}", file=sys.stderr)
-        for name in ("daemon", "controller", "wall_screen"):
+        for name in ("daemon", "controller", "wall_screen", "nurse_display"):
             p = os.path.join(tmp, name + ".log")
             if os.path.exists(p):
                 print(f"--- {name}.log\n" + open(p).read()[-2000:], file=sys.stderr)

@@ -135,11 +135,47 @@ TEST_F(Keystores, OnlyAPermittedControllerCommandsTheDaemon) {
   // its writer is refused.
   const test::CommandResult robot =
       test::run(ctl(domain, "--enclave " + enclave("a", "robot/arm").string(), "stop"));
-  EXPECT_EQ(robot.exit_code, 1) << robot.output;
-  EXPECT_NE(robot.output.find("rt/pulsetrack/command (pulsetrack_msgs::msg::dds_::Command_): Not "
-                              "Allowed By Security"),
+  // It is told which permission it lacks and which role has it (and what DDS said).
+  const auto refusedCommand = [](const test::CommandResult& r, const std::string& subject) {
+    EXPECT_EQ(r.exit_code, 1) << r.output;
+    EXPECT_NE(r.output.find("ctl: DDS Security: this participant (secured as CN=" + subject +
+                            ") has no permission to publish on rt/pulsetrack/command: commands "
+                            "need an enclave of the controller role"),
+              std::string::npos)
+        << r.output;
+    EXPECT_NE(r.output.find("rt/pulsetrack/command (pulsetrack_msgs::msg::dds_::Command_): Not "
+                            "Allowed By Security"),
+              std::string::npos)
+        << r.output;
+  };
+  refusedCommand(robot, "/robot/arm");
+  // The same for the OR display (role monitor).
+  const auto display_enclave = "--enclave " + enclave("a", "or/display").string();
+  refusedCommand(test::run(ctl(domain, display_enclave, "stop")), "/or/display");
+
+  // What each role may read, as `pulsetrack listen` shows it: the monitor sees health and is told
+  // that the deformation is not its to read (no "cannot create topic" exit); the subscriber sees
+  // both.
+  const std::string listen =
+      test::cli() + " listen --domain " + std::to_string(domain) + " --rig rig-sec --seconds 60 ";
+  const test::CommandResult monitor_listens = test::run(listen + display_enclave + " --count 1");
+  daemon.drain(0);
+  EXPECT_EQ(monitor_listens.exit_code, 0) << monitor_listens.output;
+  EXPECT_NE(monitor_listens.output.find("health  rig-sec "), std::string::npos)
+      << monitor_listens.output;
+  EXPECT_NE(monitor_listens.output.find("listen: DDS Security: this participant (secured as "
+                                        "CN=/or/display) has no permission to read "
+                                        "rt/pulsetrack/deformation: showing health only"),
             std::string::npos)
-      << robot.output;
+      << monitor_listens.output;
+  EXPECT_EQ(monitor_listens.output.find("deform  "), std::string::npos) << monitor_listens.output;
+  const test::CommandResult robot_listens = test::run(
+      listen + "--enclave " + enclave("a", "robot/arm").string() + " --count 2 --every 1");
+  daemon.drain(0);
+  EXPECT_EQ(robot_listens.exit_code, 0) << robot_listens.output;
+  EXPECT_NE(robot_listens.output.find("deform  rig-sec frame"), std::string::npos)
+      << robot_listens.output;
+  EXPECT_EQ(robot_listens.output.find("no permission"), std::string::npos) << robot_listens.output;
 
   // The daemon obeyed none of them: it still tracks, frames still counting.
   const uint64_t frames_after_attacks = frames_before;
@@ -177,7 +213,10 @@ TEST_F(Keystores, AForeignSubscriberWithItsEnclaveReceivesTheSecuredTopics) {
   const test::TempDir dir;
   DaemonOptions opt;
   opt.rig = "rig-sec";
-  opt.extra = "[security]\nenclave = \"" + enclave("a", "pulsetrack/daemon").string() + "\"\n";
+  // With the cameras' preview: a subscriber may read the images (a monitor may not:
+  // tests/igtl/igtl_test.cpp).
+  opt.extra = "[security]\nenclave = \"" + enclave("a", "pulsetrack/daemon").string() +
+              "\"\n[preview]\nrate_hz = 5.0\nscale = 2\n";
   Daemon daemon(dir, domain, {}, "", {}, opt);
   const test::CommandResult where = test::run("dpkg -L libddsc0debian");
   const size_t at = where.output.find("/libdds_security_auth.so");
@@ -207,9 +246,9 @@ TEST_F(Keystores, AForeignSubscriberWithItsEnclaveReceivesTheSecuredTopics) {
       "</Cryptographic></Security></Domain></CycloneDDS>";
   const std::string uri_file = (dir.path() / "cyclonedds.xml").string();
   std::ofstream(uri_file) << uri;
-  const test::CommandResult r =
-      test::run("CYCLONEDDS_URI=file://" + uri_file + " " + ROS2_SUBSCRIBER + " --domain " +
-                std::to_string(domain) + " --features 3 --deformation 3 --health 1 --timeout 90");
+  const test::CommandResult r = test::run(
+      "CYCLONEDDS_URI=file://" + uri_file + " " + ROS2_SUBSCRIBER + " --domain " +
+      std::to_string(domain) + " --features 3 --deformation 3 --health 1 --images 1 --timeout 90");
   kill(daemon.pid, SIGTERM);
   const auto t0 = std::chrono::steady_clock::now();
   EXPECT_EQ(daemon.wait([&] {

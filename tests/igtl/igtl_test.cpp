@@ -606,6 +606,64 @@ TEST(IgtlBridge, SlicersMessagesCarryTheDaemonsFiguresInTheTrackersFrame) {
   dds_sample_free(&im, &sensor_msgs_msg_dds__CompressedImage__desc, DDS_FREE_CONTENTS);
 }
 
+// A bridge whose DDS Security enclave has the monitor role (health only: a display in the
+// OR) serves what that role may read - the daemon's health as STATUS - and says which topics
+// its permissions do not grant, instead of failing: no features, no deformation, no images.
+TEST(IgtlBridge, AMonitorEnclaveServesHealthOnlyAndSaysWhatItMayNotRead) {
+  test::TempDir dir;
+  const std::string ks = (dir.path() / "ks").string();
+  for (const std::string& args :
+       {"init " + ks, "add-participant " + ks + " /pulsetrack/daemon --role daemon",
+        "add-participant " + ks + " /or/slicer_display --role monitor"}) {
+    const test::CommandResult r = test::run(test::sourceDir() + "/scripts/security " + args);
+    ASSERT_EQ(r.exit_code, 0) << args << ": " << r.output;
+  }
+  const uint32_t domain = 97;
+  DaemonOptions o;
+  o.rig = "rig-igtl";
+  o.extra = "[security]\nenclave = \"" + ks + "/enclaves/pulsetrack/daemon\"\n";
+  Daemon d(dir, domain, {"--run-for", "200"}, "", {}, o);
+  Program bridge({PULSETRACK_CLI, "igtl", "--port", "0", "--domain", std::to_string(domain),
+                  "--enclave", ks + "/enclaves/or/slicer_display"},
+                 dir.path() / "igtl.log");
+  const std::string port_text = bridge.waitFor(R"(serving OpenIGTLink on [0-9.]+:(\d+))", 60);
+  ASSERT_FALSE(port_text.empty()) << bridge.output();
+  Client client(std::stoi(port_text));
+  ASSERT_TRUE(client.connected());
+  // The daemon's health, tracking (STATUS OK, sub-code the daemon's state), three times.
+  const auto t0 = Clock::now();
+  bool healthy = false;
+  while (!healthy && std::chrono::duration<double>(Clock::now() - t0).count() < 90) {
+    d.drain(0);
+    healthy = client.with([](const Received& r) {
+      return std::count_if(r.statuses.begin(), r.statuses.end(), [](const Received::Status& st) {
+               return st.code == igtl::StatusMessage::STATUS_OK && st.name == "ok";
+             }) >= 3;
+    });
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  const std::string out = bridge.output();
+  const Received r = client.with([](const Received& x) { return x; });
+  client.close();
+  EXPECT_TRUE(healthy) << r.statuses.size() << " STATUS messages; the bridge said:\n" << out;
+  // Nothing the monitor may not read reached the client, and the bridge said why.
+  EXPECT_TRUE(r.points.empty() && r.transforms.empty() && r.images.empty() && r.polys.empty())
+      << r.points.size() << " POINT, " << r.transforms.size() << " TRANSFORM, " << r.images.size()
+      << " IMAGE, " << r.polys.size() << " POLYDATA";
+  for (const char* topic : {"rt/pulsetrack/features", "rt/pulsetrack/deformation",
+                            "rt/pulsetrack/field", "rt/pulsetrack/left/image/compressed"}) {
+    EXPECT_NE(out.find(std::string("igtl: DDS Security: this participant (secured as "
+                                   "CN=/or/slicer_display) has no permission to read ") +
+                       topic + ": its messages are not served"),
+              std::string::npos)
+        << topic << " in:\n"
+        << out;
+  }
+  EXPECT_EQ(bridge.stop(), 0);
+  kill(d.pid, SIGTERM);
+  EXPECT_EQ(d.wait([&] { return std::chrono::duration<double>(Clock::now() - t0).count(); }), 0);
+}
+
 // Without a daemon: the clients are told so; a question (GET_POLYDATA) is answered with what
 // there is (a STATUS "not found"); bad arguments are clear errors naming the file.
 TEST(IgtlBridge, WithoutADaemonItSaysSoAndAnswersQuestions) {

@@ -39,6 +39,13 @@ int runCtl(const CtlArgs& a) {
   if (!topics) return fmt::print(stderr, "ctl: {}\n", topics.error().message), 2;
   auto w = dds::Writer::create(*p, topics->command.c_str(), &pulsetrack_msgs_msg_dds__Command__desc,
                                dds::Profile::kCommand);
+  if (!w && dds::notAllowedBySecurity(w.error())) {
+    fmt::print(stderr,
+               "ctl: {}: commands need an enclave of the controller role (scripts/security "
+               "add-participant KEYSTORE NAME --role controller; docs/security.md)\n  ({})\n",
+               dds::notPermitted(*p, topics->command, true), w.error().message);
+    return 1;
+  }
   if (!w) return fmt::print(stderr, "ctl: {}\n", w.error().message), 1;
   auto health =
       dds::Reader::create(*p, topics->health.c_str(), &pulsetrack_msgs_msg_dds__Health__desc,

@@ -7,6 +7,7 @@
 #include <memory>
 #include <optional>
 #include <string_view>
+#include <thread>
 
 #include "pulsetrack/dds/dds.hpp"
 #include "pulsetrack/tools/commands.hpp"
@@ -35,6 +36,7 @@ int runListen(const ListenArgs& a) {
   if (!a.enclave.empty()) security = dds::SecurityFiles::inEnclave(a.enclave);
   auto p = dds::Participant::create(a.domain, security ? &*security : nullptr);
   if (!p) return fmt::print(stderr, "listen: {}\n", p.error().message), 1;
+  using dds::notAllowedBySecurity;
   auto topics = dds::Topics::forNamespace(a.ns);
   if (!topics) return fmt::print(stderr, "listen: {}\n", topics.error().message), 2;
   auto def =
@@ -43,11 +45,24 @@ int runListen(const ListenArgs& a) {
   auto health =
       dds::Reader::create(*p, topics->health.c_str(), &pulsetrack_msgs_msg_dds__Health__desc,
                           dds::Profile::kTransientLocal);
-  if (!def) return fmt::print(stderr, "listen: {}\n", def.error().message), 1;
-  if (!health) return fmt::print(stderr, "listen: {}\n", health.error().message), 1;
+  // A role that may read health only (DDS Security's `monitor`: a health display) is shown
+  // health, and told what it may not read; any other failure is an error.
+  const bool health_only = !def && notAllowedBySecurity(def.error()) && health;
+  if (!def && !health_only) return fmt::print(stderr, "listen: {}\n", def.error().message), 1;
+  if (!health) {
+    if (notAllowedBySecurity(health.error()))
+      fmt::print(stderr, "listen: {}\n", dds::notPermitted(*p, topics->health, false));
+    return fmt::print(stderr, "listen: {}\n", health.error().message), 1;
+  }
   catchStopSignals();
-  fmt::print(stderr, "listening on DDS domain {} ({} and {}); Ctrl-C to stop\n", a.domain,
-             topics->deformation, topics->health);
+  if (health_only) {
+    fmt::print(stderr,
+               "listen: {}: showing health only (the deformation needs an enclave of the "
+               "subscriber or controller role); --count counts health lines\n",
+               dds::notPermitted(*p, topics->deformation, false));
+  }
+  fmt::print(stderr, "listening on DDS domain {} ({}); Ctrl-C to stop\n", a.domain,
+             health_only ? topics->health : topics->deformation + " and " + topics->health);
   pulsetrack_msgs_msg_dds__Deformation_ d{};
   pulsetrack_msgs_msg_dds__Health_ h{};
   const auto t0 = std::chrono::steady_clock::now();
@@ -86,6 +101,13 @@ int runListen(const ListenArgs& a) {
         fmt::print("        {:8} p50 {} us, p99 {} us, max {} us\n", s.stage, s.p50_us, s.p99_us,
                    s.max_us);
       }
+      std::fflush(stdout);
+      if (health_only && a.count > 0 && ++shown >= a.count) break;
+    }
+    if (health_only) {
+      if (a.count > 0 && shown >= a.count) break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      continue;
     }
     if (!def->takeOne(&d, std::chrono::milliseconds(200))) {
       if (!quiet_said && std::chrono::steady_clock::now() - last > std::chrono::seconds(3)) {
@@ -135,7 +157,10 @@ CommandRunner addListenCommand(CLI::App& app) {
                   "scripts/security); needed when the daemon's domain is secured");
   cmd->add_option("--rig", a->rig, "Only this rig id (default: the namespace's)");
   cmd->add_option("--seconds", a->seconds, "Stop after this long")->check(CLI::NonNegativeNumber);
-  cmd->add_option("--count", a->count, "Stop after this many deformation lines (exit 3 if none)")
+  cmd->add_option(
+         "--count", a->count,
+         "Stop after this many deformation lines (health lines where the enclave may read health "
+         "only: DDS Security's monitor role); exit 3 if none")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--every", a->every, "Show every Nth deformation sample")
       ->check(CLI::PositiveNumber)

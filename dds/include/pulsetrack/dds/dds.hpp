@@ -115,6 +115,14 @@ class Reader {
   std::string name_;
 };
 
+// True where a topic, reader or writer was refused by DDS Security's access control (the
+// enclave's permissions do not grant it): a role's limit, which a tool reports and works within
+// (a monitor shows health), not a fault.
+bool notAllowedBySecurity(const vision::Error& e);
+// "DDS Security: this participant (secured as CN=/or/display) has no permission to read
+// rt/pulsetrack/deformation" (or "to publish on").
+std::string notPermitted(const Participant& p, std::string_view topic, bool write);
+
 // Header stamp from a time in ns (CLOCK_REALTIME or the trigger's time base).
 builtin_interfaces_msg_dds__Time_ stamp(int64_t ns);
 

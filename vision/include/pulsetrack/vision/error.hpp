@@ -10,6 +10,7 @@ namespace pulsetrack::vision {
 
 struct Error {
   std::string message;
+  int code = 0;  // a library's own code where the caller may act on it (the DDS layer's), or 0
 };
 
 template <class T>
