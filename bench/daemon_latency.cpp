@@ -18,6 +18,7 @@
 
 #include <CLI/CLI.hpp>
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -39,6 +40,12 @@ namespace {
 
 using pulsetrack::bench::spawn;
 using pulsetrack::bench::waitExit;
+
+int64_t realtimeNs() {
+  timespec ts{};
+  clock_gettime(CLOCK_REALTIME, &ts);
+  return int64_t{ts.tv_sec} * 1'000'000'000 + ts.tv_nsec;
+}
 
 }  // namespace
 
@@ -147,14 +154,34 @@ int main(int argc, char** argv) try {
         images.push_back(std::move(*r));
       }
     }
+    // The dense field (its own stage, off the features' path): pair -> field received, taken
+    // by a thread of its own as soon as it arrives.
+    auto field = pulsetrack::dds::Reader::create(*p, "rt/pulsetrack/field",
+                                                 &sensor_msgs_msg_dds__PointCloud2__desc,
+                                                 pulsetrack::dds::Profile::kSensorData);
+    if (!field) return 1;
+    std::vector<double> field_us;
+    std::atomic<bool> measuring{true};
+    // Skip the first 2 s: detection, DDS discovery, page faults.
+    const int64_t t_start = pulsetrack::rt::monotonicNs() + 2'000'000'000;
+    std::thread field_thread([&] {
+      sensor_msgs_msg_dds__PointCloud2_ cloud{};
+      while (measuring.load()) {
+        if (!field->takeOne(&cloud, std::chrono::milliseconds(100))) continue;
+        if (pulsetrack::rt::monotonicNs() < t_start) continue;
+        field_us.push_back(
+            static_cast<double>(realtimeNs() - (int64_t{cloud.header.stamp.sec} * 1'000'000'000 +
+                                                cloud.header.stamp.nanosec)) *
+            1e-3);
+      }
+      dds_sample_free(&cloud, &sensor_msgs_msg_dds__PointCloud2__desc, DDS_FREE_CONTENTS);
+    });
     sensor_msgs_msg_dds__CompressedImage_ im{};
     uint64_t images_received = 0;
     pulsetrack_msgs_msg_dds__Features_ f{};
     pulsetrack_msgs_msg_dds__Health_ h{};
     std::vector<double> us;
     uint64_t first = 0, last = 0, received = 0;
-    // Skip the first 2 s: detection, DDS discovery, page faults.
-    const int64_t t_start = pulsetrack::rt::monotonicNs() + 2'000'000'000;
     const int64_t t_end = t_start + static_cast<int64_t>(seconds * 1e9);
     while (pulsetrack::rt::monotonicNs() < t_end) {
       for (const auto& ir : images)
@@ -162,23 +189,25 @@ int main(int argc, char** argv) try {
       if (!reader->takeOne(&f, std::chrono::milliseconds(100))) continue;
       // The stamp is on the system clock (the daemon maps the hand-over time onto it).
       if (pulsetrack::rt::monotonicNs() < t_start) continue;
-      timespec ts{};
-      clock_gettime(CLOCK_REALTIME, &ts);
-      const int64_t now = int64_t{ts.tv_sec} * 1'000'000'000 + ts.tv_nsec;
+      const int64_t now = realtimeNs();
       const int64_t stamp = int64_t{f.header.stamp.sec} * 1'000'000'000 + f.header.stamp.nanosec;
       us.push_back(static_cast<double>(now - stamp) * 1e-3);
       if (received == 0) first = f.frame;
       last = f.frame;
       ++received;
     }
+    measuring.store(false);
+    field_thread.join();
     while (health->takeOne(&h, std::chrono::milliseconds(0))) {
     }
     std::sort(us.begin(), us.end());
-    const auto pct = [&](double q) {
-      return us.empty() ? 0.0
-                        : us[std::min(us.size() - 1,
-                                      static_cast<size_t>(q * static_cast<double>(us.size())))];
+    std::sort(field_us.begin(), field_us.end());
+    const auto pctOf = [](const std::vector<double>& v, double q) {
+      return v.empty() ? 0.0
+                       : v[std::min(v.size() - 1,
+                                    static_cast<size_t>(q * static_cast<double>(v.size())))];
     };
+    const auto pct = [&](double q) { return pctOf(us, q); };
     const uint64_t expected = received > 0 ? last - first + 1 : 0;
     std::string stages;
     for (uint32_t i = 0; i < h.stages._length; ++i) {
@@ -195,6 +224,22 @@ int main(int argc, char** argv) try {
                 static_cast<unsigned long long>(expected - received),
                 static_cast<unsigned long long>(h.drops),
                 static_cast<unsigned long long>(h.deadline_misses), stages.c_str());
+    // Where the time goes: each stage as the daemon's health measures it (capture: the source's
+    // hand-over; track: handed over -> tracked; publish: tracked -> features and deformation
+    // written; field: handed over -> field written, its own stage), then the field as received.
+    std::string breakdown;
+    for (uint32_t i = 0; i < h.stages._length; ++i) {
+      const auto& st = h.stages._buffer[i];
+      breakdown += std::string(breakdown.empty() ? "" : ", ") + st.stage + " " +
+                   std::to_string(st.p50_us) + "/" + std::to_string(st.p99_us) + "/" +
+                   std::to_string(st.max_us);
+    }
+    std::printf("           stages p50/p99/max us: %s\n", breakdown.c_str());
+    std::printf(
+        "           field received (pair handed over -> cloud received): %zu samples, p50 %.0f "
+        "us, p99 %.0f us, max %.0f us; %s\n",
+        field_us.size(), pctOf(field_us, 0.5), pctOf(field_us, 0.99),
+        field_us.empty() ? 0.0 : field_us.back(), h.output_state ? h.output_state : "");
     std::fflush(stdout);
     waitExit(d);
     dds_sample_free(&f, &pulsetrack_msgs_msg_dds__Features__desc, DDS_FREE_CONTENTS);

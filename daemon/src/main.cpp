@@ -44,6 +44,11 @@ int run(int argc, char** argv) {
   app.add_option("--run-for", run_for, "Stop after this many seconds (tests, benchmarks)");
   app.add_option("--stall-track-after", stall_after,
                  "Fault injection: stall the track stage for 5 s after this many frames");
+  int slow_field_ms = 0;
+  app.add_option("--slow-field-ms", slow_field_ms,
+                 "Fault injection: the field stage takes this many ms longer per pair (it must "
+                 "delay no features sample; health counts its skips)")
+      ->check(CLI::Range(0, 10000));
   bool list_cameras = false;
   app.add_flag("--list-cameras", list_cameras,
                "List the cameras libcamera sees (their ids for the config), exit");
@@ -213,6 +218,7 @@ int run(int argc, char** argv) {
         "only; [security] in the config, docs/security.md)",
         config->domain_id);
   }
+  pipeline.slowFieldBy(std::chrono::milliseconds(slow_field_ms));
   const daemon::Notifier notifier;
   const auto period = std::chrono::milliseconds(config->health_period_ms);
   const auto t0 = std::chrono::steady_clock::now();

@@ -87,6 +87,8 @@ Pipeline::Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSo
   }
   for (TrackResult& r : results_.slots())
     r.features.reserve(static_cast<size_t>(config_.tracker.max_features));
+  for (TrackResult& r : field_results_.slots())
+    r.features.reserve(static_cast<size_t>(config_.tracker.max_features));
   for (TargetSet& t : target_sets_.slots()) t.points.reserve(kMaxTargets);
 }
 
@@ -158,6 +160,12 @@ vision::Result<std::vector<std::string>> Pipeline::start() {
   publish_ = with_policy(2, "pt-publish", config_.publish, &Pipeline::publishLoop);
   for (int v = set_up.load(); v < 3; v = set_up.load()) set_up.wait(v);
   command_ = std::thread([this] { commandLoop(); });
+  if (config_.field.enabled) {  // normal priority, as the preview: off the features' path
+    field_ = std::thread([this] {
+      pthread_setname_np(pthread_self(), "pt-field");
+      fieldLoop();
+    });
+  }
   if (config_.preview.enabled) {  // normal priority: it must never take a core from the stages
     preview_ = std::thread([this] {
       pthread_setname_np(pthread_self(), "pt-preview");
@@ -176,13 +184,15 @@ void Pipeline::stop() {
   frames_seq_.notify_all();
   results_seq_.fetch_add(1);
   results_seq_.notify_all();
+  field_seq_.fetch_add(1);
+  field_seq_.notify_all();
   consumed_.fetch_add(1);
   consumed_.notify_all();
   if (preview_tap_) {
     preview_tap_->sequence().fetch_add(1);
     preview_tap_->sequence().notify_all();
   }
-  for (std::thread* t : {&capture_, &track_, &publish_, &command_, &preview_}) {
+  for (std::thread* t : {&capture_, &track_, &publish_, &field_, &command_, &preview_}) {
     if (t->joinable()) t->join();
   }
   source_->stop();
@@ -472,6 +482,82 @@ void Pipeline::publishLoop() {
   d.predicted_displacement = {vision::kMaxHorizons, 0, p_disp.data(), false};
   d.prediction_sigma = {vision::kMaxHorizons, 0, p_sigma.data(), false};
   d.predicted_by_model = {vision::kMaxHorizons, 0, p_model.data(), false};
+  uint64_t seen = 0;
+  while (running_.load(std::memory_order_relaxed)) {
+    publish_beat_.beat();
+    if (!waitFor(results_seq_, seen, running_)) break;
+    TrackResult* r = results_.take();
+    if (r == nullptr) continue;
+    // Stamps: the pair's exposure on the system clock.
+    const auto stamp = dds::stamp(clock_.toRealtime(r->t_ns));
+    const size_t n = std::min(r->features.size(), list.size());
+    for (size_t i = 0; i < n; ++i) {
+      const vision::Feature& f = r->features[i];
+      list[i].id = f.id;
+      list[i].status = static_cast<uint8_t>(f.status);
+      list[i].reason = static_cast<uint8_t>(f.gate);
+      list[i].position = point(f.point);
+      list[i].displacement = vec(f.point - f.point0);
+      list[i].ncc = static_cast<float>(f.ncc);
+      list[i].nmi = static_cast<float>(f.nmi);
+      list[i].left_x = static_cast<float>(f.left[0]);
+      list[i].left_y = static_cast<float>(f.left[1]);
+      list[i].right_x = static_cast<float>(f.right[0]);
+      list[i].right_y = static_cast<float>(f.right[1]);
+    }
+    fs.features._length = static_cast<uint32_t>(n);
+    fs.frame = r->trigger_seq;
+    fs.header.stamp = stamp;
+    (void)features_writer_.write(&fs);
+    const vision::Deformation& def = r->deformation;
+    if (def.valid) {
+      d.frame = r->trigger_seq;
+      d.header.stamp = stamp;
+      d.centroid = point(def.centroid);
+      d.displacement = vec(def.displacement);
+      d.velocity = vec(def.velocity);
+      d.velocity_delay = def.velocity_delay_s;
+      d.displacement_sigma = def.displacement_sigma_mm * 1e-3;
+      d.velocity_sigma = def.velocity_sigma_mm_s * 1e-3;
+      d.features_ok = static_cast<uint32_t>(def.ok);
+      d.features_total = static_cast<uint32_t>(def.total);
+      d.detections = def.detections;
+      d.continuous = def.continuous;
+      const vision::Prediction& pr = def.prediction;
+      const auto np = static_cast<uint32_t>(config_.prediction.enabled ? pr.horizons : 0);
+      for (uint32_t k = 0; k < np; ++k) {
+        p_horizon[k] = pr.horizon_s[k];
+        p_disp[k] = vec(pr.displacement[k]);
+        p_sigma[k] = pr.sigma_mm[k] * 1e-3;
+        p_model[k] = pr.model[k];
+      }
+      d.prediction_horizon._length = d.predicted_displacement._length = d.prediction_sigma._length =
+          d.predicted_by_model._length = np;
+      (void)deformation_writer_.write(&d);
+    }
+    publish_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - r->tracked_ns));
+    if (config_.field.enabled) {
+      // The field stage's copy (within the reserved capacity); it takes the latest it can.
+      TrackResult& fr = field_results_.back();
+      fr.features.assign(r->features.begin(), r->features.end());
+      fr.deformation = r->deformation;
+      fr.detected = r->detected;
+      fr.trigger_seq = r->trigger_seq;
+      fr.t_ns = r->t_ns;
+      fr.captured_ns = r->captured_ns;
+      fr.tracked_ns = r->tracked_ns;
+      field_results_.publish();
+      field_seq_.fetch_add(1, std::memory_order_release);
+      field_seq_.notify_one();
+      continue;  // done with once the field stage is (a lossless replay waits for it)
+    }
+    consumed_.fetch_add(1);
+    consumed_.notify_one();
+  }
+}
+
+// The field stage: the dense field and the targets' answers, on the latest result it can take.
+void Pipeline::fieldLoop() {
   // The field's cloud: x y z (where each grid point is now), dx dy dz (since the signal's first
   // pair), m, and confidence; float32 little-endian, organized as the grid (rows x cols).
   std::unique_ptr<vision::DeformationField> field;
@@ -533,60 +619,14 @@ void Pipeline::publishLoop() {
   tt.confidence = {kMaxTargets, 0, tt_conf.data(), false};
   uint64_t seen = 0;
   while (running_.load(std::memory_order_relaxed)) {
-    publish_beat_.beat();
-    if (!waitFor(results_seq_, seen, running_)) break;
-    TrackResult* r = results_.take();
+    if (!waitFor(field_seq_, seen, running_)) break;
+    TrackResult* r = field_results_.take();
     if (r == nullptr) continue;
-    // Stamps: the pair's exposure on the system clock.
-    const auto stamp = dds::stamp(clock_.toRealtime(r->t_ns));
-    const size_t n = std::min(r->features.size(), list.size());
-    for (size_t i = 0; i < n; ++i) {
-      const vision::Feature& f = r->features[i];
-      list[i].id = f.id;
-      list[i].status = static_cast<uint8_t>(f.status);
-      list[i].reason = static_cast<uint8_t>(f.gate);
-      list[i].position = point(f.point);
-      list[i].displacement = vec(f.point - f.point0);
-      list[i].ncc = static_cast<float>(f.ncc);
-      list[i].nmi = static_cast<float>(f.nmi);
-      list[i].left_x = static_cast<float>(f.left[0]);
-      list[i].left_y = static_cast<float>(f.left[1]);
-      list[i].right_x = static_cast<float>(f.right[0]);
-      list[i].right_y = static_cast<float>(f.right[1]);
-    }
-    fs.features._length = static_cast<uint32_t>(n);
-    fs.frame = r->trigger_seq;
-    fs.header.stamp = stamp;
-    (void)features_writer_.write(&fs);
     const vision::Deformation& def = r->deformation;
-    if (def.valid) {
-      d.frame = r->trigger_seq;
-      d.header.stamp = stamp;
-      d.centroid = point(def.centroid);
-      d.displacement = vec(def.displacement);
-      d.velocity = vec(def.velocity);
-      d.velocity_delay = def.velocity_delay_s;
-      d.displacement_sigma = def.displacement_sigma_mm * 1e-3;
-      d.velocity_sigma = def.velocity_sigma_mm_s * 1e-3;
-      d.features_ok = static_cast<uint32_t>(def.ok);
-      d.features_total = static_cast<uint32_t>(def.total);
-      d.detections = def.detections;
-      d.continuous = def.continuous;
-      const vision::Prediction& pr = def.prediction;
-      const auto np = static_cast<uint32_t>(config_.prediction.enabled ? pr.horizons : 0);
-      for (uint32_t k = 0; k < np; ++k) {
-        p_horizon[k] = pr.horizon_s[k];
-        p_disp[k] = vec(pr.displacement[k]);
-        p_sigma[k] = pr.sigma_mm[k] * 1e-3;
-        p_model[k] = pr.model[k];
-      }
-      d.prediction_horizon._length = d.predicted_displacement._length = d.prediction_sigma._length =
-          d.predicted_by_model._length = np;
-      (void)deformation_writer_.write(&d);
-    }
-    publish_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - r->tracked_ns));
-    // The dense field, after the features and the deformation are out (off their latency).
-    if (field != nullptr && field->update(r->features, r->detected, def.detections)) {
+    const auto stamp = dds::stamp(clock_.toRealtime(r->t_ns));
+    if (const int64_t slow = field_slow_ms_.load(); slow > 0)  // the test hook
+      std::this_thread::sleep_for(std::chrono::milliseconds(slow));
+    if (field->update(r->features, r->detected, def.detections)) {
       const int m = std::min(field->points(), config_.field.max_grid_points);
       // The grid predicted at each horizon with the mean's weights, when the mean's model is in
       // use (else, as for the mean, the field as it is).
@@ -668,7 +708,9 @@ void Pipeline::publishLoop() {
         tt.signal = field->signal();
         (void)targets_writer_.write(&tt);
       }
+      fields_sent_.fetch_add(1);
     }
+    field_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - r->captured_ns));
     consumed_.fetch_add(1);
     consumed_.notify_one();
   }
@@ -844,18 +886,28 @@ State Pipeline::health(const Notifier& notifier) {
                   frames_.drops() + results_.drops(), track_lat_.percentileNs(0.99) / 1000);
   notifier.status(line);
 
-  // With the preview: its stage (scale, encode, send) and the capture stage's copy for it.
-  pulsetrack_msgs_msg_dds__StageLatency_ st[5]{};
-  const rt::LatencyHistogram* hist[] = {
-      &capture_lat_, &track_lat_, &publish_lat_, &preview_lat_,
-      preview_tap_ ? &preview_tap_->copyLatency() : &preview_lat_};
-  const char* names[] = {"capture", "track", "publish", "preview", "preview_copy"};
-  const int nstages = config_.preview.enabled ? 5 : 3;
+  // With the field: its stage (pair handed over -> field sent); with the preview: its stage
+  // (scale, encode, send) and the capture stage's copy for it.
+  pulsetrack_msgs_msg_dds__StageLatency_ st[6]{};
+  std::array<const rt::LatencyHistogram*, 6> hist{&capture_lat_, &track_lat_, &publish_lat_};
+  std::array<const char*, 6> names{"capture", "track", "publish"};
+  int nstages = 3;
+  if (config_.field.enabled) {
+    hist[static_cast<size_t>(nstages)] = &field_lat_;
+    names[static_cast<size_t>(nstages++)] = "field";
+  }
+  if (preview_tap_) {
+    hist[static_cast<size_t>(nstages)] = &preview_lat_;
+    names[static_cast<size_t>(nstages++)] = "preview";
+    hist[static_cast<size_t>(nstages)] = &preview_tap_->copyLatency();
+    names[static_cast<size_t>(nstages++)] = "preview_copy";
+  }
   for (int i = 0; i < nstages; ++i) {
-    st[i].stage = const_cast<char*>(names[i]);
-    st[i].p50_us = static_cast<uint32_t>(hist[i]->percentileNs(0.5) / 1000);
-    st[i].p99_us = static_cast<uint32_t>(hist[i]->percentileNs(0.99) / 1000);
-    st[i].max_us = static_cast<uint32_t>(hist[i]->maxNs() / 1000);
+    const rt::LatencyHistogram& lat = *hist[static_cast<size_t>(i)];
+    st[i].stage = const_cast<char*>(names[static_cast<size_t>(i)]);
+    st[i].p50_us = static_cast<uint32_t>(lat.percentileNs(0.5) / 1000);
+    st[i].p99_us = static_cast<uint32_t>(lat.percentileNs(0.99) / 1000);
+    st[i].max_us = static_cast<uint32_t>(lat.maxNs() / 1000);
   }
   pulsetrack_msgs_msg_dds__Health_ h{};
   h.header.frame_id = const_cast<char*>(kFrameId);
@@ -922,6 +974,11 @@ State Pipeline::health(const Notifier& notifier) {
       health_writer_.matchedReaders(),
       config_.field.enabled ? std::to_string(field_writer_.matchedReaders()) : "off",
       config_.field.enabled ? std::to_string(targets_writer_.matchedReaders()) : "off");
+  if (config_.field.enabled) {
+    // Its own stage: what it sent and what it skipped (it takes the latest pair when free).
+    output_state += fmt::format("; field stage: {} sent, {} pairs skipped", fields_sent_.load(),
+                                field_results_.drops());
+  }
   h.output_state = output_state.data();
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;
   std::string err =

@@ -19,6 +19,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/core/persistence.hpp>
+#include <regex>
 #include <sstream>
 
 #include "daemon/daemon_process.hpp"
@@ -440,6 +441,59 @@ TEST(Ros2Output, TheFieldIsAPointCloud2ANodeDecodesAndTargetsAreFollowed) {
 
 // Every pair of a recording through pulsetrackd (replay, lossless: none dropped) and through
 // `pulsetrack track`: the same features (ids, statuses, positions) and the same deformation.
+// The dense field is its own stage, off the features' path (issue 33): made slow by 150 ms a
+// pair (pulsetrackd --slow-field-ms, at 10 pairs/s), it skips pairs - counted on health - and
+// delays no features sample: the publish stage's p99 stays far below the stall (inline, every
+// sample would wait behind it) and the features come for every pair.
+TEST(Ros2Output, ASlowFieldStageDelaysNoFeaturesSampleAndItsSkipsAreCounted) {
+  test::TempDir dir;
+  const uint32_t domain = 86;
+  DaemonOptions o;
+  o.rig = "rig-slow-field";
+  Daemon d(dir, domain, {"--run-for", "120", "--slow-field-ms", "150"}, "", {}, o);
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto secs = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  const Received r = subscribe(domain, "", 60, 0, 40, 120, "", 5);
+  kill(d.pid, SIGTERM);
+  EXPECT_EQ(d.wait(secs), 0);
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  // Features for every pair: consecutive frame numbers (a best-effort sample may rarely be lost
+  // on loopback: at most 2 of 60; with the field inline, every other pair's would be missing).
+  ASSERT_GE(r.features.size(), 60U);
+  uint64_t gaps = 0;
+  for (size_t i = 1; i < r.features.size(); ++i) {
+    const uint64_t a = std::stoull(r.features[i - 1].at("frame")),
+                   b = std::stoull(r.features[i].at("frame"));
+    gaps += b > a + 1 ? b - a - 1 : 0;
+  }
+  EXPECT_LE(gaps, 2U) << "features frames missing";
+  // The last health sample: the field stage's own latency shows the stall, the publish stage's
+  // does not; the field stage counts what it sent and skipped.
+  std::smatch m;
+  std::string last_health;
+  std::istringstream lines(r.output);
+  for (std::string line; std::getline(lines, line);)
+    if (line.rfind("health ", 0) == 0 && line.find("rig=rig-slow-field") != std::string::npos)
+      last_health = line;
+  ASSERT_TRUE(std::regex_search(last_health, m,
+                                std::regex("publish:([0-9]+)/([0-9]+)/[0-9]+,field:([0-9]+)/")))
+      << last_health;
+  const long publish_p99_us = std::stol(m[2]), field_p50_us = std::stol(m[3]);
+  EXPECT_LT(publish_p99_us, 50'000) << last_health;
+  EXPECT_GE(field_p50_us, 150'000) << last_health;
+  ASSERT_TRUE(std::regex_search(last_health, m,
+                                std::regex("field stage: ([0-9]+) sent, ([0-9]+) pairs skipped")))
+      << last_health;
+  EXPECT_GT(std::stoul(m[1]), 0U);
+  EXPECT_GT(std::stoul(m[2]), 0U) << "a field stage slower than the pairs skips some";
+  EXPECT_GE(r.field.size(), 5U);
+  std::cout << "slow field stage (150 ms a pair at 10 pairs/s): " << gaps
+            << " features frames missing of " << r.features.size() << "; publish p99 "
+            << publish_p99_us << " us, field p50 " << field_p50_us << " us; " << m[0] << "\n";
+}
+
 TEST(OfflineEqualsLive, TheDaemonAndTrackGiveTheSameSignalForEveryPair) {
   test::TempDir dir;
   const uint32_t domain = 87;

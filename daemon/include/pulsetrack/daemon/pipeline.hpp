@@ -7,9 +7,13 @@
 //   track:   vision::TrackingSession (detection, retries, re-detection, the deformation), its
 //            result copied into a preallocated slot                -> results_ (drop)
 //   publish: converts each result to DDS features and deformation (stamped on the system clock)
-//            and sends them; then the dense deformation field (vision::DeformationField) as a
-//            sensor_msgs/PointCloud2; the health sample, systemd STATUS and the watchdog ping from
-//            health() called by the main thread, which also re-measures the system clock.
+//            and sends them; then hands the result to the field stage   -> field_results_ (drop)
+//   field:   at normal priority, on the latest result it can take: the dense deformation field
+//            (vision::DeformationField, with its per-grid prediction) as a sensor_msgs/PointCloud2
+//            and the robot's targets' answers. Off the features' path: a slow field skips pairs
+//            (counted on health) and never delays the next features sample.
+//   health:  the health sample, systemd STATUS and the watchdog ping from health() called by the
+//            main thread, which also re-measures the system clock.
 //   preview: at [preview] rate_hz the capture stage copies a pair into a preallocated slot
 //            (PreviewTap: a memcpy, after the pair went to the track stage); this stage, at normal
 //            priority, scales and JPEG-encodes it and sends sensor_msgs/CompressedImage on
@@ -100,6 +104,11 @@ class Pipeline {
   [[nodiscard]] uint64_t tracked() const { return tracked_.load(); }
   // Test hook: stall the track stage (the watchdog must notice).
   void stallTrackFor(std::chrono::milliseconds d) { stall_ms_.store(d.count()); }
+  // Test hook: the field stage takes this much longer per pair (it must delay no features).
+  void slowFieldBy(std::chrono::milliseconds d) { field_slow_ms_.store(d.count()); }
+  // The field stage: clouds sent, and results it skipped (a newer one came before it was free).
+  [[nodiscard]] uint64_t fieldsSent() const { return fields_sent_.load(); }
+  [[nodiscard]] uint64_t fieldSkips() const { return field_results_.drops(); }
 
   // The capture cycle (the paper's), from the command topic or `pulsetrack ctl`: stop (frames
   // are captured, not tracked), start (tracking resumes with a fresh detection), redetect,
@@ -129,6 +138,7 @@ class Pipeline {
   void captureLoop();
   void trackLoop();
   void publishLoop();
+  void fieldLoop();
   void previewLoop();
   void commandLoop();
 
@@ -149,7 +159,7 @@ class Pipeline {
   const dds::Participant& participant_;
   dds::Writer features_writer_, deformation_writer_, health_writer_, field_writer_, targets_writer_;
   dds::Writer image_writers_[2];           // the preview: left, right
-  rt::LatestSlot<TargetSet> target_sets_;  // command thread -> publish stage
+  rt::LatestSlot<TargetSet> target_sets_;  // command thread -> field stage
   rt::LatestSlot<Frame> frames_;
   rt::LatestSlot<TrackResult> results_;
   std::atomic<uint64_t> frames_seq_{0}, results_seq_{0};  // wake-ups (futex, no lock)
@@ -161,6 +171,12 @@ class Pipeline {
   rt::LatencyHistogram preview_lat_;         // scale, encode and send (both images)
   std::atomic<uint64_t> previews_sent_{0};
   std::thread preview_;
+  rt::LatestSlot<TrackResult> field_results_;  // publish -> field stage ([field] enabled)
+  std::atomic<uint64_t> field_seq_{0};
+  rt::LatencyHistogram field_lat_;  // pair handed over -> its field (and targets) sent
+  std::atomic<uint64_t> fields_sent_{0};
+  std::atomic<int64_t> field_slow_ms_{0};
+  std::thread field_;
   std::atomic<uint64_t> tracked_{0}, processed_{0}, deadline_misses_{0};
   rt::SystemClock clock_;
   rt::LatestSlot<TrackingText> tracking_text_;  // track -> health, on a change
