@@ -459,8 +459,17 @@ TEST(Ros2Output, ASlowFieldStageDelaysNoFeaturesSampleAndItsSkipsAreCounted) {
   kill(d.pid, SIGTERM);
   EXPECT_EQ(d.wait(secs), 0);
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  // Features for every pair: consecutive frame numbers (a best-effort sample may rarely be lost
-  // on loopback: at most 2 of 60; with the field inline, every other pair's would be missing).
+  // The last health sample: the field stage's own latency shows the stall, the publish stage's
+  // does not (inline, most samples would wait behind it: p99 >= 150 ms); the field stage counts
+  // what it sent and skipped.
+  std::smatch m;
+  std::string last_health;
+  std::istringstream lines(r.output);
+  for (std::string line; std::getline(lines, line);)
+    if (line.rfind("health ", 0) == 0 && line.find("rig=rig-slow-field") != std::string::npos)
+      last_health = line;
+  // Features for every pair the daemon did not count as dropped (a busy machine may make the
+  // track stage skip a pair: counted; a best-effort sample may rarely be lost on loopback: 2).
   ASSERT_GE(r.features.size(), 60U);
   uint64_t gaps = 0;
   for (size_t i = 1; i < r.features.size(); ++i) {
@@ -468,15 +477,9 @@ TEST(Ros2Output, ASlowFieldStageDelaysNoFeaturesSampleAndItsSkipsAreCounted) {
                    b = std::stoull(r.features[i].at("frame"));
     gaps += b > a + 1 ? b - a - 1 : 0;
   }
-  EXPECT_LE(gaps, 2U) << "features frames missing";
-  // The last health sample: the field stage's own latency shows the stall, the publish stage's
-  // does not; the field stage counts what it sent and skipped.
-  std::smatch m;
-  std::string last_health;
-  std::istringstream lines(r.output);
-  for (std::string line; std::getline(lines, line);)
-    if (line.rfind("health ", 0) == 0 && line.find("rig=rig-slow-field") != std::string::npos)
-      last_health = line;
+  ASSERT_TRUE(std::regex_search(last_health, m, std::regex(" drops=([0-9]+)"))) << last_health;
+  const uint64_t drops = std::stoull(m[1]);
+  EXPECT_LE(gaps, drops + 2) << "features frames missing that the daemon did not count";
   ASSERT_TRUE(std::regex_search(last_health, m,
                                 std::regex("publish:([0-9]+)/([0-9]+)/[0-9]+,field:([0-9]+)/")))
       << last_health;
@@ -490,8 +493,9 @@ TEST(Ros2Output, ASlowFieldStageDelaysNoFeaturesSampleAndItsSkipsAreCounted) {
   EXPECT_GT(std::stoul(m[2]), 0U) << "a field stage slower than the pairs skips some";
   EXPECT_GE(r.field.size(), 5U);
   std::cout << "slow field stage (150 ms a pair at 10 pairs/s): " << gaps
-            << " features frames missing of " << r.features.size() << "; publish p99 "
-            << publish_p99_us << " us, field p50 " << field_p50_us << " us; " << m[0] << "\n";
+            << " features frames missing of " << r.features.size() << " (" << drops
+            << " pairs dropped, counted); publish p99 " << publish_p99_us << " us, field p50 "
+            << field_p50_us << " us; " << m[0] << "\n";
 }
 
 TEST(OfflineEqualsLive, TheDaemonAndTrackGiveTheSameSignalForEveryPair) {

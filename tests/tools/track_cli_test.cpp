@@ -110,8 +110,8 @@ TEST(TrackCli, RecordingTrackedAndScored) {
             << worst << " mm of theirs, which moved up to " << moved << " mm\n";
   EXPECT_GT(compared, 40);
   EXPECT_GT(far, 10);
-  // A feature's own track carries its noise (3D error RMS 0.028 mm, README), the field's answer
-  // the spline's average of its neighbours.
+  // A feature's own track carries its noise (3D error RMS 0.028 mm: docs/results.md), the field's
+  // answer the spline's average of its neighbours.
   EXPECT_LT(worst, 0.1);
   EXPECT_GT(moved, 3 * worst);
   // The field file: the grid every 5th pair, with its figures.

@@ -159,7 +159,7 @@ TEST(DeformationField, SmoothMotionWithNoiseAndOutliersHeldOutPointsWithin) {
 }
 
 // The smoothing against a motion with local structure (the bowl and the wave), noise 0.01 mm:
-// printed for the README's choice (the simulator's cortex motion is nearly affine, this is not).
+// printed for docs/ros2.md's choice (the simulator's cortex motion is nearly affine, this is not).
 TEST(DeformationField, SmoothingAgainstALocalMotion) {
   for (double lambda : {1.0, 10.0, 100.0, 300.0, 1000.0, 3000.0, 1e6}) {
     Case c;

@@ -4,8 +4,8 @@
 // simulator's (sim::OscillationClock, the cortex scenes' motion model, each case with its
 // truth): vasomotor, breathing with harmonics, cardiac with a harmonic, a slow sag, measured at
 // 30 Hz with 2 % of the pairs dropped and the tracker's noise on the mean displacement
-// (0.003 mm per axis, README); breathing 12-20 per minute, amplitude drift, irregular breaths,
-// cardiac rate changes, a sudden change of rate.
+// (0.003 mm per axis, docs/ros2.md); breathing 12-20 per minute, amplitude drift, irregular
+// breaths, cardiac rate changes, a sudden change of rate.
 
 #include "pulsetrack/vision/motion_predictor.hpp"
 

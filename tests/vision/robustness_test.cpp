@@ -3,7 +3,7 @@
 // disparity (Middlebury 2003 teddy and cones, ../shared/data/middlebury-*) beside a plain OpenCV
 // matcher on the same pair, and on the hard cortex scene (config/scenes/cortex-hard.toml: glossy,
 // view- dependent glints, gains 20 % apart drifting +-30 % independently, different vignetting, an
-// instrument resting over the ROI for 5 s, a shadow). The tables are printed (the README's gate
+// instrument resting over the ROI for 5 s, a shadow). The tables are printed (docs/gates.md's gate
 // table comes from them); the assertions are the aims this tracker meets, and guards at
 // today's level for those it does not yet meet (see the comments).
 

@@ -240,7 +240,7 @@ TEST(TrackingSession, DeformationFollowsTheTruthThroughAnInstrumentAndARedetecti
   }
 
   // The dense field on held-out material points, its smoothing measured (the default is the
-  // README's row), against the mean displacement and the limit of huge smoothing.
+  // docs/ros2.md), against the mean displacement and the limit of huge smoothing.
   const FieldScore mean_only = scoreField(recorded, s, config.roi, nullptr, 100);
   std::cout << "held-out material points, 3D error over " << mean_only.pairs
             << " pairs: the mean displacement everywhere: RMS " << mean_only.rms << " mm, max "

@@ -596,7 +596,7 @@ CommandRunner addTrackCommand(CLI::App& app) {
   cmd->add_option("--field-spacing", args->field_spacing, "The field's grid spacing (mm)")
       ->capture_default_str();
   cmd->add_option("--field-smoothing", args->field_smoothing,
-                  "The field's spline smoothing (mm^2; README: how the default was chosen)")
+                  "The field's spline smoothing (mm^2; docs/ros2.md: how the default was chosen)")
       ->capture_default_str();
   cmd->add_option("--targets", args->targets,
                   "Points to follow (CSV x,y,z in mm, as they were in the first tracked pair): "

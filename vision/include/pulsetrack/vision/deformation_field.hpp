@@ -29,7 +29,7 @@
 // With the affine part, smoothing flattened a 10 mm sag: 1.15 mm RMS on held-out points after
 // cortex-1h-compressed's shift, 0.052 mm with the quadratic (tests/vision/long_tracking_test).
 // Measured against the mean displacement and the affine limit (large smoothing) on held-out
-// material points: tests/vision/deformation_field_test.cpp, README.
+// material points: tests/vision/deformation_field_test.cpp, docs/ros2.md.
 
 #include <Eigen/Dense>
 #include <cstdint>
