@@ -572,35 +572,34 @@ void Pipeline::fieldLoop() {
   const size_t floats = kCloudFloats + 3 * static_cast<size_t>(horizons);
   const auto cloud_step = static_cast<uint32_t>(floats * sizeof(float));
   sensor_msgs_msg_dds__PointCloud2_ cloud{};
-  if (config_.field.enabled) {
-    field = std::make_unique<vision::DeformationField>(config_.field, config_.tracker.max_features);
-    if (horizons > 0) {
-      field->enablePrediction(config_.prediction.order * config_.prediction.step_s + 0.1,
-                              std::max(config_.prediction.max_rate_hz, 2.0 * config_.fps));
-    }
-    cloud_data.assign(static_cast<size_t>(config_.field.max_grid_points) * cloud_step, 0);
-    for (const char* n : kCloudFieldNames) cloud_names.emplace_back(n);
-    for (int k = 0; k < horizons; ++k) {
-      const long ms = std::lround(config_.prediction.horizons_s[static_cast<size_t>(k)] * 1e3);
-      for (const char* axis : {"dx", "dy", "dz"})
-        cloud_names.push_back(fmt::format("{}_{}ms", axis, ms));
-    }
-    for (size_t i = 0; i < floats; ++i) {
-      cloud_fields[i].name = cloud_names[i].data();
-      cloud_fields[i].offset = static_cast<uint32_t>(i * sizeof(float));
-      cloud_fields[i].datatype = 7;  // sensor_msgs/PointField FLOAT32
-      cloud_fields[i].count = 1;
-    }
-    cloud.header.frame_id = const_cast<char*>(kFrameId);
-    cloud.fields._buffer = cloud_fields.data();
-    cloud.fields._length = cloud.fields._maximum = static_cast<uint32_t>(floats);
-    cloud.fields._release = false;
-    cloud.is_bigendian = std::endian::native == std::endian::big;
-    cloud.point_step = cloud_step;
-    cloud.data._buffer = cloud_data.data();
-    cloud.data._maximum = static_cast<uint32_t>(cloud_data.size());
-    cloud.data._release = false;
+  // (The stage runs only with [field] enabled.)
+  field = std::make_unique<vision::DeformationField>(config_.field, config_.tracker.max_features);
+  if (horizons > 0) {
+    field->enablePrediction(config_.prediction.order * config_.prediction.step_s + 0.1,
+                            std::max(config_.prediction.max_rate_hz, 2.0 * config_.fps));
   }
+  cloud_data.assign(static_cast<size_t>(config_.field.max_grid_points) * cloud_step, 0);
+  for (const char* n : kCloudFieldNames) cloud_names.emplace_back(n);
+  for (int k = 0; k < horizons; ++k) {
+    const long ms = std::lround(config_.prediction.horizons_s[static_cast<size_t>(k)] * 1e3);
+    for (const char* axis : {"dx", "dy", "dz"})
+      cloud_names.push_back(fmt::format("{}_{}ms", axis, ms));
+  }
+  for (size_t i = 0; i < floats; ++i) {
+    cloud_fields[i].name = cloud_names[i].data();
+    cloud_fields[i].offset = static_cast<uint32_t>(i * sizeof(float));
+    cloud_fields[i].datatype = 7;  // sensor_msgs/PointField FLOAT32
+    cloud_fields[i].count = 1;
+  }
+  cloud.header.frame_id = const_cast<char*>(kFrameId);
+  cloud.fields._buffer = cloud_fields.data();
+  cloud.fields._length = cloud.fields._maximum = static_cast<uint32_t>(floats);
+  cloud.fields._release = false;
+  cloud.is_bigendian = std::endian::native == std::endian::big;
+  cloud.point_step = cloud_step;
+  cloud.data._buffer = cloud_data.data();
+  cloud.data._maximum = static_cast<uint32_t>(cloud_data.size());
+  cloud.data._release = false;
   // The robot's targets: their references (mm, in the field's reference pair), the last answers.
   std::vector<cv::Vec3d> target_refs, target_last;
   target_refs.reserve(kMaxTargets);
