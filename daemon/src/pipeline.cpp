@@ -579,6 +579,7 @@ void Pipeline::fieldLoop() {
                             std::max(config_.prediction.max_rate_hz, 2.0 * config_.fps));
   }
   cloud_data.assign(static_cast<size_t>(config_.field.max_grid_points) * cloud_step, 0);
+  cloud_names.reserve(floats);
   for (const char* n : kCloudFieldNames) cloud_names.emplace_back(n);
   for (int k = 0; k < horizons; ++k) {
     const long ms = std::lround(config_.prediction.horizons_s[static_cast<size_t>(k)] * 1e3);
