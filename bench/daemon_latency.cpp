@@ -9,10 +9,16 @@
 // RTPS, encrypted topics), to see what security costs.
 // --preview, the cameras' preview (JPEG at 5 Hz, read by a subscriber as the console reads it) on
 // or off, to see that it leaves the tracking's latency as it was.
+// --off-path, the stages off the features' path (the dense field, the stereo refresh) on or off,
+// to see what they cost the path on this machine's cores.
+// --receiver-fifo P, this process's threads (Cyclone's receive thread among them) at SCHED_FIFO P,
+// as a robot's real-time subscriber would run, so that what is measured is the daemon and the
+// transport, not this process waiting for a core behind the daemon's normal-priority stages.
 //   daemon_latency [--seconds S] [--rates 30,60,120] [--features N] [--security off|on|both]
-//                  [--preview off|on|both]
+//                  [--preview off|on|both] [--off-path on|off|both] [--receiver-fifo P]
 // The issue's run is 5 minutes per rate: --seconds 300.
 
+#include <sched.h>
 #include <spawn.h>
 #include <sys/wait.h>
 
@@ -21,7 +27,9 @@
 #include <atomic>
 #include <chrono>
 #include <cstdio>
+#include <cerrno>
 #include <cstdlib>
+#include <cstring>
 #include <ctime>
 #include <filesystem>
 #include <fstream>
@@ -45,6 +53,19 @@ int64_t realtimeNs() {
   timespec ts{};
   clock_gettime(CLOCK_REALTIME, &ts);
   return int64_t{ts.tv_sec} * 1'000'000'000 + ts.tv_nsec;
+}
+
+// Every thread of this process at SCHED_FIFO `priority` (those started later inherit it).
+void setFifo(int priority) {
+  sched_param p{};
+  p.sched_priority = priority;
+  for (const auto& t : std::filesystem::directory_iterator("/proc/self/task")) {
+    const pid_t tid = std::stoi(t.path().filename().string());
+    if (sched_setscheduler(tid, SCHED_FIFO, &p) != 0) {
+      std::fprintf(stderr, "daemon_latency: SCHED_FIFO %d for thread %d: %s\n", priority, tid,
+                   std::strerror(errno));
+    }
+  }
 }
 
 }  // namespace
@@ -73,6 +94,16 @@ int main(int argc, char** argv) try {
                  "The cameras' preview (5 Hz JPEG, a subscriber reading it): off, on or both")
       ->check(CLI::IsMember({"off", "on", "both"}))
       ->capture_default_str();
+  std::string off_path = "on";
+  app.add_option("--off-path", off_path,
+                 "The stages off the features' path (dense field, stereo refresh): on, off or both")
+      ->check(CLI::IsMember({"off", "on", "both"}))
+      ->capture_default_str();
+  int receiver_fifo = 0;
+  app.add_option("--receiver-fifo", receiver_fifo,
+                 "This process's threads (the subscriber's) at SCHED_FIFO with this priority (1-99; "
+                 "0: normal, as a desktop subscriber)")
+      ->check(CLI::Range(0, 99));
   CLI11_PARSE(app, argc, argv);
   setenv("CYCLONEDDS_URI", pulsetrack::dds::kLoopbackUri, 1);
   const auto dir =
@@ -101,27 +132,36 @@ int main(int argc, char** argv) try {
   }
   std::printf("frame handed over -> features sample received by another process (DDS, loopback)\n");
   std::printf(
-      "%-10s %-8s %6s %8s %9s %9s %9s %9s %7s %8s %9s %s\n", "DDS", "preview", "rate", "samples",
+      "%-10s %-8s %-8s %6s %8s %9s %9s %9s %9s %7s %8s %9s %s\n", "DDS", "preview", "off-path",
+      "rate", "samples",
       "p50 us", "p99 us", "p99.9 us", "max us", "lost", "drops", "deadline",
       "track stage (handed over -> tracked) p50/p99 us, preview stage p50/p99 us, capture's copy "
       "p50/p99 us, images received");
   int domain = 90;
-  std::vector<std::tuple<bool, bool, double>> runs;
+  const auto wanted = [](const std::string& choice, bool on) {
+    return choice == "both" || (choice == "on") == on;
+  };
+  std::vector<std::tuple<bool, bool, bool, double>> runs;
   for (const bool secured : {false, true}) {
-    if ((secured && security == "off") || (!secured && security == "on")) continue;
     for (const bool with_preview : {false, true}) {
-      if ((with_preview && preview == "off") || (!with_preview && preview == "on")) continue;
-      for (const double rate : rates) runs.emplace_back(secured, with_preview, rate);
+      for (const bool with_off_path : {true, false}) {
+        if (!wanted(security, secured) || !wanted(preview, with_preview) ||
+            !wanted(off_path, with_off_path))
+          continue;
+        for (const double rate : rates) runs.emplace_back(secured, with_preview, with_off_path, rate);
+      }
     }
   }
-  for (const auto& [secured, with_preview, rate] : runs) {
+  for (const auto& [secured, with_preview, with_off_path, rate] : runs) {
     const auto cfg = dir / "pulsetrackd.toml";
     std::ofstream(cfg) << "rig_id = \"bench\"\n[dds]\ndomain_id = " << domain
                        << "\n[source]\nkind = \"replay\"\nrecording = \"" << rec
                        << "\"\npace = \"rate\"\nfps = " << rate
                        << "\nloop = true\npreload = true\n[tracker]\nmax_features = " << features
+                       << (with_off_path ? "" : "\nstereo_refresh = 0")
                        << "\n[health]\nperiod_ms = 500\n[preview]\nenabled = "
-                       << (with_preview ? "true" : "false") << "\n";
+                       << (with_preview ? "true" : "false") << "\n"
+                       << (with_off_path ? "" : "[field]\nenabled = false\n");
     if (secured) {
       std::ofstream(cfg, std::ios::app)
           << "[security]\nenclave = \"" << keystore << "/enclaves/pulsetrack/daemon\"\n";
@@ -154,6 +194,7 @@ int main(int argc, char** argv) try {
         images.push_back(std::move(*r));
       }
     }
+    if (receiver_fifo > 0) setFifo(receiver_fifo);  // Cyclone's threads exist by now
     // The dense field (its own stage, off the features' path): pair -> field received, taken
     // by a thread of its own as soon as it arrives.
     auto field = pulsetrack::dds::Reader::create(*p, "rt/pulsetrack/field",
@@ -164,6 +205,31 @@ int main(int argc, char** argv) try {
     std::atomic<bool> measuring{true};
     // Skip the first 2 s: detection, DDS discovery, page faults.
     const int64_t t_start = pulsetrack::rt::monotonicNs() + 2'000'000'000;
+    // The machine's own scheduling, meanwhile (cyclictest's measure): a thread at SCHED_FIFO 90
+    // that sleeps to an absolute time every millisecond and records how late it woke. Each pair
+    // crosses four such wake-ups (the source's, the track, publish and receive threads').
+    std::vector<double> wake_us;
+    wake_us.reserve(static_cast<size_t>(seconds * 1000.0) + 1000);
+    std::thread wake_thread([&] {
+      sched_param sp{};
+      sp.sched_priority = 90;
+      const bool fifo = sched_setscheduler(0, SCHED_FIFO, &sp) == 0;
+      timespec next{};
+      clock_gettime(CLOCK_MONOTONIC, &next);
+      while (measuring.load()) {
+        next.tv_nsec += 1'000'000;
+        if (next.tv_nsec >= 1'000'000'000) {
+          next.tv_nsec -= 1'000'000'000;
+          ++next.tv_sec;
+        }
+        clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &next, nullptr);
+        const int64_t now = pulsetrack::rt::monotonicNs();
+        if (fifo && now >= t_start && wake_us.size() < wake_us.capacity())
+          wake_us.push_back(
+              static_cast<double>(now - (int64_t{next.tv_sec} * 1'000'000'000 + next.tv_nsec)) *
+              1e-3);
+      }
+    });
     std::thread field_thread([&] {
       sensor_msgs_msg_dds__PointCloud2_ cloud{};
       while (measuring.load()) {
@@ -198,6 +264,8 @@ int main(int argc, char** argv) try {
     }
     measuring.store(false);
     field_thread.join();
+    wake_thread.join();
+    std::sort(wake_us.begin(), wake_us.end());
     while (health->takeOne(&h, std::chrono::milliseconds(0))) {
     }
     std::sort(us.begin(), us.end());
@@ -218,8 +286,9 @@ int main(int argc, char** argv) try {
       }
     }
     if (with_preview) stages += std::to_string(images_received);
-    std::printf("%-10s %-8s %4.0f Hz %8zu %9.0f %9.0f %9.0f %9.0f %7llu %8llu %9llu %s\n",
-                secured ? "secured" : "unsecured", with_preview ? "on" : "off", rate, us.size(),
+    std::printf("%-10s %-8s %-8s %4.0f Hz %8zu %9.0f %9.0f %9.0f %9.0f %7llu %8llu %9llu %s\n",
+                secured ? "secured" : "unsecured", with_preview ? "on" : "off",
+                with_off_path ? "on" : "off", rate, us.size(),
                 pct(0.5), pct(0.99), pct(0.999), us.empty() ? 0.0 : us.back(),
                 static_cast<unsigned long long>(expected - received),
                 static_cast<unsigned long long>(h.drops),
@@ -228,13 +297,27 @@ int main(int argc, char** argv) try {
     // hand-over; track: handed over -> tracked; publish: tracked -> features and deformation
     // written; field: handed over -> field written, its own stage), then the field as received.
     std::string breakdown;
+    double path_p50 = 0.0;  // the features' path in the daemon: capture + track + publish
     for (uint32_t i = 0; i < h.stages._length; ++i) {
       const auto& st = h.stages._buffer[i];
+      const std::string name = st.stage;
+      if (name == "capture" || name == "track" || name == "publish") path_p50 += st.p50_us;
       breakdown += std::string(breakdown.empty() ? "" : ", ") + st.stage + " " +
                    std::to_string(st.p50_us) + "/" + std::to_string(st.p99_us) + "/" +
                    std::to_string(st.max_us);
     }
     std::printf("           stages p50/p99/max us: %s\n", breakdown.c_str());
+    // What the daemon's stages leave of the median: the features' way to this process (DDS over
+    // loopback, the receive thread's wake-up) and the stages' hand-overs.
+    std::printf(
+        "           path p50: capture + track + publish %.0f us, received - that %.0f us (DDS "
+        "to this process and the wake-ups)\n",
+        path_p50, pct(0.5) - path_p50);
+    std::printf(
+        "           this machine's wake-up lateness (SCHED_FIFO thread, 1 ms sleeps, %zu): p50 %.0f "
+        "us, p99 %.0f us, p99.9 %.0f us, max %.0f us\n",
+        wake_us.size(), pctOf(wake_us, 0.5), pctOf(wake_us, 0.99), pctOf(wake_us, 0.999),
+        wake_us.empty() ? 0.0 : wake_us.back());
     std::printf(
         "           field received (pair handed over -> cloud received): %zu samples, p50 %.0f "
         "us, p99 %.0f us, max %.0f us; %s\n",

@@ -6,7 +6,9 @@
 #include <CLI/CLI.hpp>
 #include <csignal>
 #include <cstdio>
+#include <algorithm>
 #include <optional>
+#include <utility>
 #include <thread>
 
 #include "pulsetrack/daemon/config.hpp"
@@ -24,6 +26,21 @@
 namespace {
 volatile std::sig_atomic_t g_stop = 0;
 void onSignal(int /*sig*/) { g_stop = 1; }
+
+// --slow-stage's STAGE:MS, or nothing when it is not that.
+std::optional<std::pair<pulsetrack::daemon::Pipeline::OffPath, long>> slowStage(
+    const std::string& v) {
+  const auto colon = v.find(':');
+  if (colon == std::string::npos) return std::nullopt;
+  const auto& names = pulsetrack::daemon::Pipeline::kOffPathNames;
+  const auto* at = std::find(names.begin(), names.end(), v.substr(0, colon));
+  const std::string ms = v.substr(colon + 1);
+  if (at == names.end() || ms.empty() || ms.size() > 5 ||
+      !std::all_of(ms.begin(), ms.end(), [](char c) { return c >= '0' && c <= '9'; }))
+    return std::nullopt;
+  return std::pair{static_cast<pulsetrack::daemon::Pipeline::OffPath>(at - names.begin()),
+                   std::stol(ms)};
+}
 }  // namespace
 
 namespace {
@@ -44,11 +61,14 @@ int run(int argc, char** argv) {
   app.add_option("--run-for", run_for, "Stop after this many seconds (tests, benchmarks)");
   app.add_option("--stall-track-after", stall_after,
                  "Fault injection: stall the track stage for 5 s after this many frames");
-  int slow_field_ms = 0;
-  app.add_option("--slow-field-ms", slow_field_ms,
-                 "Fault injection: the field stage takes this many ms longer per pair (it must "
-                 "delay no features sample; health counts its skips)")
-      ->check(CLI::Range(0, 10000));
+  std::vector<std::string> slow_stages;
+  app.add_option("--slow-stage", slow_stages,
+                 "Fault injection: STAGE:MS, a stage off the features' path (field, refresh or "
+                 "preview) takes MS longer per pair (it must delay no features sample; health "
+                 "counts its skips); repeatable")
+      ->check([](const std::string& v) -> std::string {
+        return slowStage(v) ? "" : "expected STAGE:MS (STAGE field, refresh or preview; MS 0-99999), got '" + v + "'";
+      });
   bool list_cameras = false;
   app.add_flag("--list-cameras", list_cameras,
                "List the cameras libcamera sees (their ids for the config), exit");
@@ -218,7 +238,10 @@ int run(int argc, char** argv) {
         "only; [security] in the config, docs/security.md)",
         config->domain_id);
   }
-  pipeline.slowFieldBy(std::chrono::milliseconds(slow_field_ms));
+  for (const std::string& v : slow_stages) {  // checked by the option
+    if (const auto stage = slowStage(v))
+      pipeline.slowStageBy(stage->first, std::chrono::milliseconds(stage->second));
+  }
   const daemon::Notifier notifier;
   const auto period = std::chrono::milliseconds(config->health_period_ms);
   const auto t0 = std::chrono::steady_clock::now();

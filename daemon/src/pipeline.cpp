@@ -90,6 +90,11 @@ Pipeline::Pipeline(const DaemonConfig& config, std::unique_ptr<drivers::CameraSo
   for (TrackResult& r : field_results_.slots())
     r.features.reserve(static_cast<size_t>(config_.tracker.max_features));
   for (TargetSet& t : target_sets_.slots()) t.points.reserve(kMaxTargets);
+  if (refreshing()) {
+    for (RefreshHandOff& j : refresh_jobs_.slots()) j.job = vision::RefreshJob(config_.tracker);
+    for (vision::RefreshOutcome& o : refresh_outcomes_.slots())
+      o = vision::RefreshOutcome(config_.tracker);
+  }
 }
 
 Pipeline::~Pipeline() { stop(); }
@@ -166,6 +171,12 @@ vision::Result<std::vector<std::string>> Pipeline::start() {
       fieldLoop();
     });
   }
+  if (refreshing()) {  // normal priority, as the field: off the features' path
+    refresh_ = std::thread([this] {
+      pthread_setname_np(pthread_self(), "pt-refresh");
+      refreshLoop();
+    });
+  }
   if (config_.preview.enabled) {  // normal priority: it must never take a core from the stages
     preview_ = std::thread([this] {
       pthread_setname_np(pthread_self(), "pt-preview");
@@ -186,13 +197,18 @@ void Pipeline::stop() {
   results_seq_.notify_all();
   field_seq_.fetch_add(1);
   field_seq_.notify_all();
+  refresh_seq_.fetch_add(1);
+  refresh_seq_.notify_all();
+  refresh_done_.fetch_add(1);
+  refresh_done_.notify_all();
   consumed_.fetch_add(1);
   consumed_.notify_all();
   if (preview_tap_) {
     preview_tap_->sequence().fetch_add(1);
     preview_tap_->sequence().notify_all();
   }
-  for (std::thread* t : {&capture_, &track_, &publish_, &field_, &command_, &preview_}) {
+  for (std::thread* t :
+       {&capture_, &track_, &publish_, &field_, &refresh_, &command_, &preview_}) {
     if (t->joinable()) t->join();
   }
   source_->stop();
@@ -290,6 +306,7 @@ void Pipeline::previewLoop() {
     const PreviewFrame* p = preview_tap_->take();
     if (p == nullptr) continue;
     const int64_t t0 = rt::monotonicNs();
+    slowDown(OffPath::kPreview);  // the test hook
     bool ok = true;
     for (int k = 0; k < 2; ++k) {
       const cv::Mat& full = k == 0 ? p->left : p->right;
@@ -419,6 +436,9 @@ void Pipeline::trackLoop() {
         session.start();
     }
     if (redetect_requested_.exchange(false)) session.requestRedetect();
+    // The refresh stage's newest matches, from an earlier pair, folded in before this one.
+    if (const vision::RefreshOutcome* o = refreshing() ? refresh_outcomes_.take() : nullptr)
+      (void)session.applyRefresh(*o);
     const vision::PairResult& pr =
         session.process(f->pair.left, f->pair.right, f->pair.trigger_seq, f->pair.t_left_ns);
     processed_.fetch_add(1);
@@ -457,10 +477,47 @@ void Pipeline::trackLoop() {
     tracked_.fetch_add(1);
     results_seq_.fetch_add(1, std::memory_order_release);
     results_seq_.notify_one();
-    // The pair's result is on its way: now, off the latency, some features' stereo match is
-    // taken again (a fixed number per pair, so the stage's time stays bounded).
-    session.afterPublish(f->pair.left, f->pair.right);
+    // The pair's result is on its way: now the recent templates are taken, and the windows that
+    // the refresh stage matches again are copied (a fixed number per pair: a bounded copy).
+    if (refreshing()) handOverRefresh(session, *f);
   }
+}
+
+void Pipeline::handOverRefresh(vision::TrackingSession& session, const Frame& f) {
+  RefreshHandOff& j = refresh_jobs_.back();
+  session.prepareRefresh(f.pair.left, f.pair.right, j.job);
+  if (j.job.count == 0) return;
+  j.captured_ns = f.captured_ns;
+  refresh_jobs_.publish();
+  const uint64_t job = refresh_seq_.fetch_add(1, std::memory_order_release) + 1;
+  refresh_seq_.notify_one();
+  if (!config_.lossless) return;
+  // A replay: the matches are in before the next pair, as `pulsetrack track` has them.
+  for (uint64_t d = refresh_done_.load(); d < job && running_.load(); d = refresh_done_.load())
+    refresh_done_.wait(d);
+  if (const vision::RefreshOutcome* o = refresh_outcomes_.take()) (void)session.applyRefresh(*o);
+}
+
+// The refresh stage: the stereo refresh's matching, on the latest job it can take.
+void Pipeline::refreshLoop() {
+  uint64_t seen = 0;
+  while (running_.load(std::memory_order_relaxed)) {
+    if (!waitFor(refresh_seq_, seen, running_)) break;
+    const RefreshHandOff* j = refresh_jobs_.take();
+    if (j == nullptr) continue;
+    slowDown(OffPath::kRefresh);
+    vision::measureRefresh(j->job, refresh_outcomes_.back());
+    refresh_outcomes_.publish();
+    refresh_lat_.record(static_cast<uint64_t>(rt::monotonicNs() - j->captured_ns));
+    refreshes_.fetch_add(1, std::memory_order_relaxed);
+    refresh_done_.fetch_add(1, std::memory_order_release);
+    refresh_done_.notify_one();
+  }
+}
+
+void Pipeline::slowDown(OffPath stage) const {
+  if (const int64_t ms = slow_ms_[static_cast<size_t>(stage)].load(); ms > 0)
+    std::this_thread::sleep_for(std::chrono::milliseconds(ms));
 }
 
 void Pipeline::publishLoop() {
@@ -624,8 +681,7 @@ void Pipeline::fieldLoop() {
     if (r == nullptr) continue;
     const vision::Deformation& def = r->deformation;
     const auto stamp = dds::stamp(clock_.toRealtime(r->t_ns));
-    if (const int64_t slow = field_slow_ms_.load(); slow > 0)  // the test hook
-      std::this_thread::sleep_for(std::chrono::milliseconds(slow));
+    slowDown(OffPath::kField);  // the test hook
     if (field->update(r->features, r->detected, def.detections)) {
       const int m = std::min(field->points(), config_.field.max_grid_points);
       // The grid predicted at each horizon with the mean's weights, when the mean's model is in
@@ -888,13 +944,18 @@ State Pipeline::health(const Notifier& notifier) {
 
   // With the field: its stage (pair handed over -> field sent); with the preview: its stage
   // (scale, encode, send) and the capture stage's copy for it.
-  pulsetrack_msgs_msg_dds__StageLatency_ st[6]{};
-  std::array<const rt::LatencyHistogram*, 6> hist{&capture_lat_, &track_lat_, &publish_lat_};
-  std::array<const char*, 6> names{"capture", "track", "publish"};
+  // With the refresh: its stage (pair handed over -> its matches measured).
+  pulsetrack_msgs_msg_dds__StageLatency_ st[7]{};
+  std::array<const rt::LatencyHistogram*, 7> hist{&capture_lat_, &track_lat_, &publish_lat_};
+  std::array<const char*, 7> names{"capture", "track", "publish"};
   int nstages = 3;
   if (config_.field.enabled) {
     hist[static_cast<size_t>(nstages)] = &field_lat_;
     names[static_cast<size_t>(nstages++)] = "field";
+  }
+  if (refreshing()) {
+    hist[static_cast<size_t>(nstages)] = &refresh_lat_;
+    names[static_cast<size_t>(nstages++)] = "refresh";
   }
   if (preview_tap_) {
     hist[static_cast<size_t>(nstages)] = &preview_lat_;
@@ -974,10 +1035,22 @@ State Pipeline::health(const Notifier& notifier) {
       health_writer_.matchedReaders(),
       config_.field.enabled ? std::to_string(field_writer_.matchedReaders()) : "off",
       config_.field.enabled ? std::to_string(targets_writer_.matchedReaders()) : "off");
+  // The stages off the features' path: what each did and what it skipped (each takes the latest
+  // pair when free).
   if (config_.field.enabled) {
-    // Its own stage: what it sent and what it skipped (it takes the latest pair when free).
     output_state += fmt::format("; field stage: {} sent, {} pairs skipped", fields_sent_.load(),
                                 field_results_.drops());
+  }
+  if (refreshing()) {
+    // Pairs whose job it never took; matches replaced by newer ones before the track stage took
+    // them (the track stage slower than the refresh).
+    output_state += fmt::format("; refresh stage: {} measured, {} pairs skipped, {} replaced",
+                                refreshes_.load(), refresh_jobs_.drops(),
+                                refresh_outcomes_.drops());
+  }
+  if (preview_tap_) {
+    output_state += fmt::format("; preview stage: {} sent, {} copies skipped",
+                                previews_sent_.load(), preview_tap_->drops());
   }
   h.output_state = output_state.data();
   if (const std::string* refusal = command_errors_.take()) last_refusal_ = *refusal;

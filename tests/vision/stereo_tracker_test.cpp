@@ -6,11 +6,13 @@
 
 #include <algorithm>
 #include <cctype>
+#include <cmath>
 #include <fstream>
 #include <iostream>
 #include <map>
 #include <opencv2/imgproc.hpp>
 #include <regex>
+#include <thread>
 
 #include "pulsetrack/analysis/plate.hpp"
 #include "pulsetrack/record/track_csv.hpp"
@@ -207,6 +209,77 @@ TEST(StereoTracker, StereoRefreshTakesTheFirstPairsNoiseOut) {
   EXPECT_LT(over_with * 3, over_without);
   // It moves point0 with the position: the displacements see none of it.
   EXPECT_NEAR(with.max_mean_displacement_mm, without.max_mean_displacement_mm, 0.003);
+}
+
+// The stereo refresh in parts (pulsetrackd's refresh stage): prepared on the tracking thread,
+// matched on another, folded in - the same features, bit for bit, as refreshStereo() in a row;
+// folded in a pair late (a live stage's lag) within a hundredth of a pixel of it; and a job whose
+// features were detected afresh since is left out.
+TEST(StereoTracker, StereoRefreshInPartsMatchesTheRefreshInARow) {
+  sim::SceneSpec spec = staticCortex();
+  spec.supersample = 1;
+  spec.cortex.instrument.enabled = false;
+  sim::StereoSimulator s(spec, sim::paperRig());
+  std::vector<cv::Mat> left(12), right(12);
+  for (int i = 0; i < 12; ++i)
+    s.render(i, left[static_cast<size_t>(i)], right[static_cast<size_t>(i)]);
+  const TrackerConfig config;
+  StereoTracker in_a_row(s.rig(), config), in_parts(s.rig(), config), late(s.rig(), config);
+  for (StereoTracker* t : {&in_a_row, &in_parts, &late})
+    ASSERT_TRUE(t->initialize(left[0], right[0], roiFor(s, 19.0), 20.0));
+  RefreshJob job(config), late_job(config);
+  RefreshOutcome outcome(config), late_outcome(config);
+  int taken = 0, late_taken = 0;
+  bool pending = false;
+  for (size_t i = 1; i < left.size(); ++i) {
+    for (StereoTracker* t : {&in_a_row, &in_parts, &late}) t->track(left[i], right[i]);
+    (void)in_a_row.refreshStereo(left[i], right[i]);
+    in_parts.prepareRefresh(left[i], right[i], job);
+    std::thread([&] { measureRefresh(job, outcome); }).join();
+    taken += in_parts.applyRefresh(outcome);
+    // A pair late: this pair's matches are folded in after the next pair's tracking.
+    if (pending) late_taken += late.applyRefresh(late_outcome);
+    late.prepareRefresh(left[i], right[i], late_job);
+    measureRefresh(late_job, late_outcome);
+    pending = true;
+  }
+  late_taken += late.applyRefresh(late_outcome);  // the last pair's, before the next one
+  EXPECT_GT(taken, 100);  // 25 a pair, of 11 pairs; a few gated out
+  EXPECT_GT(late_taken, 100);
+  ASSERT_EQ(in_a_row.features().size(), in_parts.features().size());
+  double late_px = 0.0, late_sq = 0.0;
+  int late_n = 0;
+  for (size_t k = 0; k < in_a_row.features().size(); ++k) {
+    const Feature &a = in_a_row.features()[k], &b = in_parts.features()[k],
+                  &c = late.features()[k];
+    EXPECT_EQ(a.status, b.status) << k;
+    EXPECT_EQ(a.right, b.right) << k;
+    EXPECT_EQ(a.point, b.point) << k;
+    EXPECT_EQ(a.point0, b.point0) << k;
+    if (a.status == FeatureStatus::kOk && c.status == FeatureStatus::kOk)
+    {
+      late_px = std::max(late_px, cv::norm(a.right - c.right));
+      late_sq += std::pow(cv::norm(a.right - c.right), 2);
+      ++late_n;
+    }
+  }
+  // The last pair's tracking saw the offsets of a pair before (an average of 11 matches or
+  // fewer, whose latest weighs 1/11 or more).
+  const double late_rms = std::sqrt(late_sq / std::max(late_n, 1));
+  EXPECT_LT(late_rms, 0.01);
+  EXPECT_LT(late_px, 0.05);
+  std::cout << "refresh in parts: " << taken << " matches taken (a pair late: " << late_taken
+            << ", right positions RMS " << late_rms << " px, at most " << late_px
+            << " px from the refresh in a row)\n";
+  // A job whose features were detected afresh since: none of its matches is taken.
+  in_parts.prepareRefresh(left[11], right[11], job);
+  ASSERT_GT(job.count, 0U);
+  measureRefresh(job, outcome);
+  ASSERT_GT(outcome.count, 0U);
+  ASSERT_TRUE(in_parts.initialize(left[11], right[11], roiFor(s, 19.0), 20.0));
+  const std::vector<Feature> fresh(in_parts.features().begin(), in_parts.features().end());
+  EXPECT_EQ(in_parts.applyRefresh(outcome), 0);
+  for (size_t k = 0; k < fresh.size(); ++k) EXPECT_EQ(in_parts.features()[k].point0, fresh[k].point0);
 }
 
 // Re-detection: when most features are lost (here the right camera goes dark), the tracker

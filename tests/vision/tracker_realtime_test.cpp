@@ -212,6 +212,25 @@ TEST(TrackerRealtime, TheSessionAllocatesNothingPerPairEvenWithABadRoi) {
     EXPECT_GT(field.points(), 400);
     std::cout << "field: " << field.cols() << "x" << field.rows() << " grid, "
               << field.factorizations() - factorizations << " factorizations in 10 pairs\n";
+    // The stereo refresh in parts, as pulsetrackd's track and refresh stages run it: the job and
+    // its outcome sized once, then nothing per pair.
+    RefreshJob job(c.tracker);
+    RefreshOutcome outcome(c.tracker);
+    int taken = 0;
+    g_allocations = 0;
+    g_locks = 0;
+    g_counting = true;
+    for (int i = 11; i >= 2; --i) {
+      const auto k = static_cast<size_t>(i);
+      (void)session.process(left[k], right[k], static_cast<uint64_t>(24 - i), t_ns(24 - i));
+      session.prepareRefresh(left[k], right[k], job);
+      measureRefresh(job, outcome);
+      taken += session.applyRefresh(outcome);
+    }
+    g_counting = false;
+    EXPECT_EQ(g_allocations.load(), 0) << "allocations in 10 pairs' refresh in parts";
+    EXPECT_EQ(g_locks.load(), 0);
+    EXPECT_GT(taken, 50);
   }
   {  // tracked at half the images' size: each pair resampled into buffers sized at detection,
      // the features mapped back to the images' pixels in a vector reserved at construction

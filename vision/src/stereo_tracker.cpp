@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <numeric>
 #include <opencv2/imgproc.hpp>
@@ -269,10 +270,8 @@ StereoTracker::StereoTracker(const StereoRig& rig, const TrackerConfig& config)
   const int side = 2 * maxSearchPx() + 1;
   scores_.resize(static_cast<size_t>(side) * side);
   residuals_.resize(static_cast<size_t>(std::max(config_.max_features, 1)));
-  const auto refresh = static_cast<size_t>(std::max(config_.stereo_refresh, 1));
-  refresh_ml_.resize(refresh);
-  refresh_sorted_.resize(refresh);
-  refresh_index_.resize(refresh);
+  refresh_job_ = RefreshJob(config_);
+  refresh_outcome_ = RefreshOutcome(config_);
 }
 
 int StereoTracker::maxSearchPx() const noexcept {
@@ -1395,75 +1394,176 @@ void StereoTracker::refreshTemplates(const cv::Mat& left, const cv::Mat& right) 
   }
 }
 
-int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noexcept {
+namespace {
+// A window around the feature wide enough for the refinement (the template's 15x15 under the
+// stereo warp, and room to move) and the sheen and glint gates (the template and its margin).
+int refreshHalf(const TrackerConfig& c) { return std::max(24, kHalf + c.specular_margin_px + 4); }
+}  // namespace
+
+RefreshJob::RefreshJob(const TrackerConfig& config)
+    : items(static_cast<size_t>(std::max(config.stereo_refresh, 1))),
+      side(2 * refreshHalf(config) + 1) {
+  pixels.resize(items.size() * 2 * static_cast<size_t>(side) * static_cast<size_t>(side));
+}
+
+cv::Mat RefreshJob::window(size_t k, int cam) const noexcept {
+  const Item& it = items[k];
+  const auto c = static_cast<size_t>(cam);
+  const size_t at = (k * 2 + c) * static_cast<size_t>(side) * static_cast<size_t>(side);
+  // A header over the job's own bytes (no allocation); read only.
+  return {it.size[c].height, it.size[c].width, CV_8UC1, const_cast<uint8_t*>(pixels.data() + at),
+          static_cast<size_t>(side)};
+}
+
+RefreshOutcome::RefreshOutcome(const TrackerConfig& config) {
+  const auto n = static_cast<size_t>(std::max(config.stereo_refresh, 1));
+  matches.resize(n);
+  chosen.resize(n);
+  left_mean.resize(n);
+  ratio.resize(n);
+}
+
+void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
+  out.count = 0;
+  // The gain ratio of the two views now: the cameras' gains drift independently, so each
+  // feature's shading ratio from its detection (view_gain) is scaled by the median drift of this
+  // pair before the sheen gate compares.
+  const int half = kHalf + job.specular_margin_px;
+  const size_t cap = std::min({job.count, out.matches.size(), out.chosen.size()});
+  size_t m = 0;
+  for (size_t k = 0; k < cap; ++k) {
+    const RefreshJob::Item& it = job.items[k];
+    const cv::Vec2d at_l = it.left - cv::Vec2d(it.origin[0].x, it.origin[0].y);
+    const cv::Vec2d at_r = it.right - cv::Vec2d(it.origin[1].x, it.origin[1].y);
+    const double ml = regionMean(job.window(k, 0), at_l, half);
+    const double mr = regionMean(job.window(k, 1), at_r, half);
+    if (!(ml > 0.0) || !(mr > 0.0)) continue;
+    out.chosen[m] = k;
+    out.left_mean[m] = ml;  // the left patch does not move below: its mean is reused
+    out.ratio[m] = mr / ml / it.view_gain;
+    ++m;
+  }
+  if (m == 0) return;
+  std::nth_element(out.ratio.begin(), out.ratio.begin() + static_cast<long>(m / 2),
+                   out.ratio.begin() + static_cast<long>(m));
+  const double drift = out.ratio[m / 2];
+  for (size_t j = 0; j < m; ++j) {
+    const size_t k = out.chosen[j];
+    const RefreshJob::Item& it = job.items[k];
+    const cv::Mat l = job.window(k, 0), r = job.window(k, 1);
+    const cv::Vec2d o_l(it.origin[0].x, it.origin[0].y), o_r(it.origin[1].x, it.origin[1].y);
+    const cv::Vec2d at_l = it.left - o_l, at_r = it.right - o_r;
+    // The same refinement as the first pair's match, from where the feature is now.
+    AffineResult ar;
+    if (job.dark_blobs) {
+      if (out.shift.set(l.data, l.step, l.cols, l.rows, at_l))
+        ar = out.shift.refine(r.data, r.step, r.cols, r.rows, at_r);
+    } else if (out.affine.set(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()},
+                              job.ramp)) {
+      ar = out.affine.refine(r.data, r.step, r.cols, r.rows, {at_r, it.warp}, 20, 0.01);
+    }
+    // Gated as the first match was; a match far from the corrected track, sheen or a glint in
+    // either view is not averaged in.
+    if (!ar.converged || cv::norm(ar.warp.centre - at_r) > 0.5 || ar.ncc < job.min_ncc) continue;
+    const double mr = regionMean(r, ar.warp.centre, half);
+    if (std::abs(mr / out.left_mean[j] / it.view_gain / drift - 1.0) > job.max_sheen ||
+        neighbourhoodMax(r, ar.warp.centre, job.specular_margin_px) >= job.specular_threshold ||
+        neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold) {
+      continue;
+    }
+    RefreshOutcome::Match& match = out.matches[out.count++];
+    match.index = it.index;
+    match.id = it.id;
+    match.right_track = it.right_track;
+    match.centre = ar.warp.centre + o_r;
+    match.warp = job.dark_blobs ? it.warp : ar.warp.a;
+  }
+}
+
+void StereoTracker::prepareRefresh(const cv::Mat& left, const cv::Mat& right,
+                                   RefreshJob& job) noexcept {
+  job.count = 0;
   if (tracked_ && left.size() == right.size()) refreshTemplates(left, right);
   const size_t n = features_.size();
   // The pair the features were detected in has been matched already: its noise counts once.
   if (!tracked_ || !config_.refinement || config_.stereo_refresh <= 0 || n == 0 ||
-      left.size() != right.size()) {
-    return 0;
+      left.size() != right.size() || job.side <= 0) {
+    return;
   }
-  // This call's features (ok ones, round robin) and the gain ratio of the two views now: the
-  // cameras' gains drift independently, so each feature's shading ratio from its detection
-  // (view_gain) is scaled by the median drift of this pair before the sheen gate compares.
-  const int half = kHalf + config_.specular_margin_px;
-  const auto budget =
-      std::min({n, static_cast<size_t>(config_.stereo_refresh), refresh_index_.size()});
-  size_t m = 0;
+  job.min_ncc = std::max(config_.min_ncc, config_.min_stereo_ncc);
+  job.max_sheen = gates_.max_sheen;
+  job.specular_margin_px = config_.specular_margin_px;
+  job.specular_threshold = config_.specular_threshold;
+  job.dark_blobs = config_.detector == Detector::kDarkBlobs;
+  job.ramp = config_.stereo_ramp;
+  const int h = job.side / 2;
+  // This call's features: ok ones, round robin.
+  const auto budget = std::min({n, static_cast<size_t>(config_.stereo_refresh), job.items.size()});
   for (size_t visited = 0; visited < budget; ++visited) {
     const size_t i = refresh_next_ % n;
     refresh_next_ = (i + 1) % n;
-    if (features_[i].status != FeatureStatus::kOk) continue;
-    const double ml = regionMean(left, features_[i].left, half);
-    const double mr = regionMean(right, features_[i].right, half);
-    if (!(ml > 0.0) || !(mr > 0.0)) continue;
-    refresh_index_[m] = i;
-    refresh_ml_[m] = ml;  // the left patch does not move below: its mean is reused
-    refresh_sorted_[m] = mr / ml / states_[i].view_gain;
-    ++m;
+    const Feature& f = features_[i];
+    if (f.status != FeatureStatus::kOk) continue;
+    const State& s = states_[i];
+    RefreshJob::Item& it = job.items[job.count];
+    it.index = i;
+    it.id = f.id;
+    it.left = f.left;
+    it.right = f.right;
+    it.right_track = s.right_track;
+    it.warp = s.stereo_warp;
+    it.view_gain = s.view_gain;
+    bool inside = true;
+    for (int cam = 0; cam < 2; ++cam) {  // the window, clipped by the image's border
+      const cv::Mat& img = cam == 0 ? left : right;
+      const cv::Vec2d& at = cam == 0 ? f.left : f.right;
+      const int x0 = std::max(0, static_cast<int>(std::lround(at[0])) - h);
+      const int y0 = std::max(0, static_cast<int>(std::lround(at[1])) - h);
+      const int x1 = std::min(img.cols, static_cast<int>(std::lround(at[0])) + h + 1);
+      const int y1 = std::min(img.rows, static_cast<int>(std::lround(at[1])) + h + 1);
+      const auto c = static_cast<size_t>(cam);
+      if (x1 <= x0 || y1 <= y0) {
+        inside = false;
+        break;
+      }
+      it.origin[c] = {x0, y0};
+      it.size[c] = {x1 - x0, y1 - y0};
+      uint8_t* dst = job.pixels.data() +
+                     (job.count * 2 + c) * static_cast<size_t>(job.side) *
+                         static_cast<size_t>(job.side);
+      for (int y = y0; y < y1; ++y)
+        std::memcpy(dst + static_cast<size_t>(y - y0) * static_cast<size_t>(job.side),
+                    img.ptr<uint8_t>(y) + x0, static_cast<size_t>(x1 - x0));
+    }
+    if (inside) ++job.count;
   }
-  if (m == 0) return 0;
-  std::nth_element(refresh_sorted_.begin(), refresh_sorted_.begin() + static_cast<long>(m / 2),
-                   refresh_sorted_.begin() + static_cast<long>(m));
-  const double drift = refresh_sorted_[m / 2];
+}
+
+int StereoTracker::applyRefresh(const RefreshOutcome& outcome) noexcept {
   int taken = 0;
-  for (size_t k = 0; k < m; ++k) {
-    const size_t i = refresh_index_[k];
-    Feature& f = features_[i];
-    State& s = states_[i];
-    // The same refinement as the first pair's match, from where the feature is now.
-    AffineResult ar;
-    if (config_.detector == Detector::kDarkBlobs) {
-      if (refresh_shift_.set(left.data, left.step, left.cols, left.rows, f.left))
-        ar = refresh_shift_.refine(right.data, right.step, right.cols, right.rows, f.right);
-    } else if (refresh_affine_.set(left.data, left.step, left.cols, left.rows,
-                                   {f.left, cv::Matx22d::eye()}, config_.stereo_ramp)) {
-      ar = refresh_affine_.refine(right.data, right.step, right.cols, right.rows,
-                                  {f.right, s.stereo_warp}, 20, 0.01);
-    }
-    // Gated as the first match was; a match far from the corrected track, sheen or a glint in
-    // either view is not averaged in.
-    if (!ar.converged || cv::norm(ar.warp.centre - f.right) > 0.5 ||
-        ar.ncc < std::max(config_.min_ncc, config_.min_stereo_ncc)) {
-      continue;
-    }
-    const double ml = refresh_ml_[k], mr = regionMean(right, ar.warp.centre, half);
-    if (std::abs(mr / ml / s.view_gain / drift - 1.0) > gates_.max_sheen ||
-        neighbourhoodMax(right, ar.warp.centre, config_.specular_margin_px) >=
-            config_.specular_threshold ||
-        neighbourhoodMax(left, f.left, config_.specular_margin_px) >= config_.specular_threshold) {
-      continue;
-    }
-    const int window = std::max(1, config_.stereo_refresh_window);
+  const int window = std::max(1, config_.stereo_refresh_window);
+  for (size_t k = 0; k < outcome.count && k < outcome.matches.size(); ++k) {
+    const RefreshOutcome::Match& m = outcome.matches[k];
+    // Ids are never reused: a feature re-detected since the job (or a fresh detection) is not it.
+    if (m.index >= features_.size() || features_[m.index].id != m.id) continue;
+    Feature& f = features_[m.index];
+    State& s = states_[m.index];
     s.stereo_samples = std::min(s.stereo_samples + 1, window);
-    s.stereo_offset += (ar.warp.centre - s.right_track - s.stereo_offset) / s.stereo_samples;
-    if (config_.detector != Detector::kDarkBlobs) s.stereo_warp = ar.warp.a;
+    s.stereo_offset += (m.centre - m.right_track - s.stereo_offset) / s.stereo_samples;
+    s.stereo_warp = m.warp;
     // The reference point takes the same correction, so that displacements do not see it.
     const Triangulation t0 = triangulate(rig_, s.left0, s.right0 + s.stereo_offset);
     if (t0.ok) f.point0 = t0.point;
     ++taken;
   }
   return taken;
+}
+
+int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noexcept {
+  prepareRefresh(left, right, refresh_job_);
+  if (refresh_job_.count == 0) return 0;
+  measureRefresh(refresh_job_, refresh_outcome_);
+  return applyRefresh(refresh_outcome_);
 }
 
 void StereoTracker::motionGate() noexcept {

@@ -620,4 +620,14 @@ void TrackingSession::afterPublish(const cv::Mat& left, const cv::Mat& right) no
   if (initialized_ && !stopped_) tracker_.refreshStereo(workLeft(left), workRight(right));
 }
 
+void TrackingSession::prepareRefresh(const cv::Mat& left, const cv::Mat& right,
+                                     RefreshJob& job) noexcept {
+  job.count = 0;
+  if (initialized_ && !stopped_) tracker_.prepareRefresh(workLeft(left), workRight(right), job);
+}
+
+int TrackingSession::applyRefresh(const RefreshOutcome& outcome) noexcept {
+  return initialized_ && !stopped_ ? tracker_.applyRefresh(outcome) : 0;
+}
+
 }  // namespace pulsetrack::vision

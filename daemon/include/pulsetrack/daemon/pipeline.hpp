@@ -8,6 +8,11 @@
 //            result copied into a preallocated slot                -> results_ (drop)
 //   publish: converts each result to DDS features and deformation (stamped on the system clock)
 //            and sends them; then hands the result to the field stage   -> field_results_ (drop)
+//   refresh: at normal priority, on the latest job it can take: the tracker's stereo refresh
+//            (vision::measureRefresh: some features' stereo match again, on windows the track
+//            stage copied after the result went out); its matches return through
+//            refresh_outcomes_ and the track stage folds them in before its next pair. A slow
+//            refresh skips pairs (counted on health) and never delays the next pair's tracking.
 //   field:   at normal priority, on the latest result it can take: the dense deformation field
 //            (vision::DeformationField, with its per-grid prediction) as a sensor_msgs/PointCloud2
 //            and the robot's targets' answers. Off the features' path: a slow field skips pairs
@@ -104,8 +109,13 @@ class Pipeline {
   [[nodiscard]] uint64_t tracked() const { return tracked_.load(); }
   // Test hook: stall the track stage (the watchdog must notice).
   void stallTrackFor(std::chrono::milliseconds d) { stall_ms_.store(d.count()); }
-  // Test hook: the field stage takes this much longer per pair (it must delay no features).
-  void slowFieldBy(std::chrono::milliseconds d) { field_slow_ms_.store(d.count()); }
+  // The stages off the features' path.
+  enum class OffPath : uint8_t { kField, kRefresh, kPreview };
+  static constexpr std::array<const char*, 3> kOffPathNames{"field", "refresh", "preview"};
+  // Test hook: such a stage takes this much longer per pair (it must delay no features).
+  void slowStageBy(OffPath stage, std::chrono::milliseconds d) {
+    slow_ms_[static_cast<size_t>(stage)].store(d.count());
+  }
   // The field stage: clouds sent, and results it skipped (a newer one came before it was free).
   [[nodiscard]] uint64_t fieldsSent() const { return fields_sent_.load(); }
   [[nodiscard]] uint64_t fieldSkips() const { return field_results_.drops(); }
@@ -139,7 +149,16 @@ class Pipeline {
   void trackLoop();
   void publishLoop();
   void fieldLoop();
+  void refreshLoop();
+  // The track stage, after a result went out: the pair's refresh job to the refresh stage.
+  void handOverRefresh(vision::TrackingSession& session, const Frame& f);
   void previewLoop();
+  // The test hook's stall, if any (slowStageBy).
+  void slowDown(OffPath stage) const;
+  // The stereo refresh runs as a stage of its own (else the tracker has none to run).
+  [[nodiscard]] bool refreshing() const {
+    return config_.tracker.stereo_refresh > 0 && config_.tracker.refinement;
+  }
   void commandLoop();
 
   DaemonConfig config_;
@@ -175,8 +194,20 @@ class Pipeline {
   std::atomic<uint64_t> field_seq_{0};
   rt::LatencyHistogram field_lat_;  // pair handed over -> its field (and targets) sent
   std::atomic<uint64_t> fields_sent_{0};
-  std::atomic<int64_t> field_slow_ms_{0};
+  std::array<std::atomic<int64_t>, 3> slow_ms_{};  // slowStageBy(), per OffPath
   std::thread field_;
+  // The stereo refresh's stage (tracker.stereo_refresh > 0): track -> refresh -> track.
+  struct RefreshHandOff {
+    vision::RefreshJob job;
+    int64_t captured_ns = 0;
+  };
+  rt::LatestSlot<RefreshHandOff> refresh_jobs_;
+  rt::LatestSlot<vision::RefreshOutcome> refresh_outcomes_;
+  std::atomic<uint64_t> refresh_seq_{0};   // jobs handed over (and stop()'s wake-up)
+  std::atomic<uint64_t> refresh_done_{0};  // jobs measured (and stop()'s wake-up)
+  std::atomic<uint64_t> refreshes_{0};     // jobs measured, for health
+  rt::LatencyHistogram refresh_lat_;  // pair handed over -> its refresh measured
+  std::thread refresh_;
   std::atomic<uint64_t> tracked_{0}, processed_{0}, deadline_misses_{0};
   rt::SystemClock clock_;
   rt::LatestSlot<TrackingText> tracking_text_;  // track -> health, on a change

@@ -33,6 +33,8 @@ class PreviewTap {
   const PreviewFrame* take() noexcept { return slots_.take(); }
   // Bumped after each copy (wait on it with std::atomic::wait).
   std::atomic<uint64_t>& sequence() noexcept { return seq_; }
+  // Copies the preview stage never took (a newer one came while it was busy).
+  [[nodiscard]] uint64_t drops() const noexcept { return slots_.drops(); }
   // The copies' time in the capture stage.
   [[nodiscard]] const rt::LatencyHistogram& copyLatency() const noexcept { return copy_lat_; }
 

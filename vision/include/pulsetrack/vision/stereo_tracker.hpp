@@ -257,6 +257,62 @@ struct TrackerConfig {
   int video_refine_iterations_bound = 20;
 };
 
+// The stereo refresh in three parts, so that its matching can run on a thread of its own
+// (pulsetrackd's refresh stage, off the features' path): StereoTracker::prepareRefresh() (after
+// the pair's result is out, on the tracking thread) takes the recent templates and copies what the
+// stereo match needs into a RefreshJob - each chosen feature's state and a window of either view
+// around it, so the pair's images may be reused at once; measureRefresh() matches the job on any
+// thread and touches no tracker; StereoTracker::applyRefresh() (on the tracking thread, before a
+// later pair) folds the matches into the features that are still the same ones.
+// StereoTracker::refreshStereo() is the three in a row. Both are sized once (allocation-free
+// after construction).
+struct RefreshJob {
+  struct Item {
+    size_t index = 0;  // in features()
+    int id = -1;
+    cv::Vec2d left, right, right_track;
+    cv::Matx22d warp = cv::Matx22d::eye();  // its stereo warp
+    double view_gain = 1.0;
+    std::array<cv::Point, 2> origin{};  // each window's top-left corner in its image
+    std::array<cv::Size, 2> size{};     // each window (clipped by the image's border)
+  };
+  RefreshJob() = default;
+  explicit RefreshJob(const TrackerConfig& config);  // room for config.stereo_refresh features
+  // Feature k's window in camera `cam` (0 left, 1 right): a header over `pixels`.
+  [[nodiscard]] cv::Mat window(size_t k, int cam) const noexcept;
+
+  std::vector<Item> items;      // the first `count` are this job's
+  std::vector<uint8_t> pixels;  // per item, the left and then the right window, side x side
+  int side = 0;
+  size_t count = 0;
+  // The gates as the tracker had them at prepareRefresh().
+  double min_ncc = 0.0, max_sheen = 0.0;
+  int specular_margin_px = 0, specular_threshold = 255;
+  bool dark_blobs = false, ramp = false;
+};
+
+struct RefreshOutcome {
+  struct Match {
+    size_t index = 0;
+    int id = -1;
+    cv::Vec2d right_track, centre;  // the track and the stereo match, in the job's pair
+    cv::Matx22d warp = cv::Matx22d::eye();
+  };
+  RefreshOutcome() = default;
+  explicit RefreshOutcome(const TrackerConfig& config);
+  std::vector<Match> matches;  // the first `count`
+  size_t count = 0;
+  // measureRefresh()'s scratch.
+  std::vector<size_t> chosen;
+  std::vector<double> left_mean, ratio;
+  AffineTemplate affine;
+  ShiftTemplate shift;
+};
+
+// Matches a job's features in their windows as the first pair's match was (the affine
+// refinement from where they are, gated for sheen and glints). No allocation, lock or exception.
+void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept;
+
 struct Roi {
   cv::Rect left;
   cv::Rect right;
@@ -351,13 +407,18 @@ class StereoTracker {
 
   // Per frame: the real-time path.
   void track(const cv::Mat& left, const cv::Mat& right) noexcept;
+  // refreshStereo() in parts (RefreshJob above): the job for this pair, and a job's matches
+  // folded in (those whose feature has been re-detected since are left out). Neither allocates,
+  // locks or throws. applyRefresh() returns how many matches were taken.
+  void prepareRefresh(const cv::Mat& left, const cv::Mat& right, RefreshJob& job) noexcept;
+  int applyRefresh(const RefreshOutcome& outcome) noexcept;
   // After track() has been published (it adds no latency): matches up to
   // config.stereo_refresh features (round robin, ok ones) between this left and right image
   // again, with the affine refinement, and folds each into the feature's running stereo
   // correction; track() applies it from the next pair on, to the position and to the reference
   // point0 alike (displacements stay consistent). Nothing after a detection until track() has
   // run (that pair's match is in already). No allocation, lock or exception. Returns how many
-  // matches were taken.
+  // matches were taken. prepareRefresh(), measureRefresh() and applyRefresh() in a row.
   int refreshStereo(const cv::Mat& left, const cv::Mat& right) noexcept;
 
   [[nodiscard]] std::span<const Feature> features() const {
@@ -452,12 +513,9 @@ class StereoTracker {
   std::vector<float> scores_;       // sized once: (2R+1)^2
   std::vector<uint8_t> scratch_;    // a padded copy of a window near the image border
   std::vector<double> residuals_;   // surface gate, sized to max_features
-  std::vector<double> refresh_ml_;  // refreshStereo()'s left patch means, sized once
-  std::vector<double> refresh_sorted_;
-  std::vector<size_t> refresh_index_;
-  int retirable_ = 0;              // features past retire_after_pairs
-  AffineTemplate refresh_affine_;  // refreshStereo()'s scratch templates
-  ShiftTemplate refresh_shift_;
+  RefreshJob refresh_job_;  // refreshStereo()'s, sized once
+  RefreshOutcome refresh_outcome_;
+  int retirable_ = 0;  // features past retire_after_pairs
   size_t refresh_next_ = 0;
   size_t template_next_ = 0;  // refreshTemplates()'s round robin
   bool tracked_ = false;      // track() ran since the last detection

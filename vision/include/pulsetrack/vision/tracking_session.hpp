@@ -139,6 +139,11 @@ class TrackingSession {
   // After the pair's result has been handed on: the stereo refresh (no allocation). The same
   // pair as the last process().
   void afterPublish(const cv::Mat& left, const cv::Mat& right) noexcept;
+  // The same in parts, for a stage of its own (RefreshJob in stereo_tracker.hpp): the job of the
+  // last process()'s pair (the recent templates are taken now), and a job's matches folded in
+  // before a later pair. measureRefresh() runs between them on any thread.
+  void prepareRefresh(const cv::Mat& left, const cv::Mat& right, RefreshJob& job) noexcept;
+  int applyRefresh(const RefreshOutcome& outcome) noexcept;
 
   // Why nothing is tracked ("" while tracking): valid until the next call; no allocation.
   [[nodiscard]] std::string_view reason() const noexcept { return {reason_.data(), reason_len_}; }
