@@ -424,6 +424,7 @@ void Pipeline::trackLoop() {
       wake_publish();
       continue;
     }
+    handover_lat_.record(static_cast<uint64_t>(std::max<int64_t>(0, rt::monotonicNs() - f->captured_ns)));
     if (const int64_t stall = stall_ms_.exchange(0); stall > 0)
       std::this_thread::sleep_for(std::chrono::milliseconds(stall));
     // Commands, between pairs (the command thread checked them).
@@ -945,10 +946,13 @@ State Pipeline::health(const Notifier& notifier) {
   // With the field: its stage (pair handed over -> field sent); with the preview: its stage
   // (scale, encode, send) and the capture stage's copy for it.
   // With the refresh: its stage (pair handed over -> its matches measured).
-  pulsetrack_msgs_msg_dds__StageLatency_ st[7]{};
-  std::array<const rt::LatencyHistogram*, 7> hist{&capture_lat_, &track_lat_, &publish_lat_};
-  std::array<const char*, 7> names{"capture", "track", "publish"};
-  int nstages = 3;
+  // The track stage's first part on its own: the pair handed over -> the track thread has it (the
+  // wake-up of a sleeping thread on another core).
+  pulsetrack_msgs_msg_dds__StageLatency_ st[8]{};
+  std::array<const rt::LatencyHistogram*, 8> hist{&capture_lat_, &handover_lat_, &track_lat_,
+                                                  &publish_lat_};
+  std::array<const char*, 8> names{"capture", "handover", "track", "publish"};
+  int nstages = 4;
   if (config_.field.enabled) {
     hist[static_cast<size_t>(nstages)] = &field_lat_;
     names[static_cast<size_t>(nstages++)] = "field";

@@ -186,6 +186,7 @@ class Pipeline {
   uint64_t handed_ = 0;                // capture thread: pairs handed to the track stage
   rt::Heartbeat capture_beat_, track_beat_, publish_beat_;
   rt::LatencyHistogram capture_lat_, track_lat_, publish_lat_;
+  rt::LatencyHistogram handover_lat_;  // handed over -> the track stage has it (in track_lat_)
   std::unique_ptr<PreviewTap> preview_tap_;  // capture -> preview ([preview] enabled)
   rt::LatencyHistogram preview_lat_;         // scale, encode and send (both images)
   std::atomic<uint64_t> previews_sent_{0};
