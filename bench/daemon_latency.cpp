@@ -11,11 +11,13 @@
 // or off, to see that it leaves the tracking's latency as it was.
 // --off-path, the stages off the features' path (the dense field, the stereo refresh) on or off,
 // to see what they cost the path on this machine's cores.
+// --pin, the track stage alone on the last CPU, the daemon's other stages on the first (the
+// layout a board with cores to spare would give the path, here on 2).
 // --receiver-fifo P, this process's threads (Cyclone's receive thread among them) at SCHED_FIFO P,
 // as a robot's real-time subscriber would run, so that what is measured is the daemon and the
 // transport, not this process waiting for a core behind the daemon's normal-priority stages.
 //   daemon_latency [--seconds S] [--rates 30,60,120] [--features N] [--security off|on|both]
-//                  [--preview off|on|both] [--off-path on|off|both] [--receiver-fifo P]
+//                  [--preview off|on|both] [--off-path on|off|both] [--receiver-fifo P] [--pin]
 // The run is 5 minutes per rate: --seconds 300.
 
 #include <sched.h>
@@ -104,7 +106,16 @@ int main(int argc, char** argv) try {
                  "This process's threads (the subscriber's) at SCHED_FIFO with this priority (1-99; "
                  "0: normal, as a desktop subscriber)")
       ->check(CLI::Range(0, 99));
+  bool pin = false;
+  app.add_flag("--pin", pin,
+               "The track stage on the last CPU alone, every other stage of the daemon on the "
+               "first ([realtime] cpu; the field, refresh and preview as off_path)");
   CLI11_PARSE(app, argc, argv);
+  const int last_cpu = static_cast<int>(std::thread::hardware_concurrency()) - 1;
+  if (pin && last_cpu < 1) {
+    std::fprintf(stderr, "daemon_latency: --pin needs at least 2 CPUs\n");
+    return 2;
+  }
   setenv("CYCLONEDDS_URI", pulsetrack::dds::kLoopbackUri, 1);
   const auto dir =
       std::filesystem::temp_directory_path() / ("pulsetrack-latency-" + std::to_string(getpid()));
@@ -162,6 +173,12 @@ int main(int argc, char** argv) try {
                        << "\n[health]\nperiod_ms = 500\n[preview]\nenabled = "
                        << (with_preview ? "true" : "false") << "\n"
                        << (with_off_path ? "" : "[field]\nenabled = false\n");
+    if (pin) {
+      std::ofstream(cfg, std::ios::app)
+          << "[realtime]\ncapture = { priority = 80, cpu = 0 }\ntrack = { priority = 70, cpu = "
+          << last_cpu
+          << " }\npublish = { priority = 60, cpu = 0 }\noff_path = { priority = 0, cpu = 0 }\n";
+    }
     if (secured) {
       std::ofstream(cfg, std::ios::app)
           << "[security]\nenclave = \"" << keystore << "/enclaves/pulsetrack/daemon\"\n";

@@ -303,6 +303,13 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
     c.capture = policy(s, "capture", c.capture, error);
     c.track = policy(s, "track", c.track, error);
     c.publish = policy(s, "publish", c.publish, error);
+    c.off_path = policy(s, "off_path", c.off_path, error);
+    if (c.off_path.fifo_priority != 0 && error.empty()) {
+      error = fmt::format(
+          "{}: [realtime] off_path priority is {}: the stages off the features' path run at "
+          "normal priority (0), so that they never take a core from it",
+          file, c.off_path.fifo_priority);
+    }
     s.finish();
   }
   if (const toml::table* t = r.table("health")) {

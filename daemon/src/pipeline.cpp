@@ -167,19 +167,19 @@ vision::Result<std::vector<std::string>> Pipeline::start() {
   command_ = std::thread([this] { commandLoop(); });
   if (config_.field.enabled) {  // normal priority, as the preview: off the features' path
     field_ = std::thread([this] {
-      pthread_setname_np(pthread_self(), "pt-field");
+      offPathPolicy("pt-field");
       fieldLoop();
     });
   }
   if (refreshing()) {  // normal priority, as the field: off the features' path
     refresh_ = std::thread([this] {
-      pthread_setname_np(pthread_self(), "pt-refresh");
+      offPathPolicy("pt-refresh");
       refreshLoop();
     });
   }
   if (config_.preview.enabled) {  // normal priority: it must never take a core from the stages
     preview_ = std::thread([this] {
-      pthread_setname_np(pthread_self(), "pt-preview");
+      offPathPolicy("pt-preview");
       previewLoop();
     });
   }
@@ -514,6 +514,11 @@ void Pipeline::refreshLoop() {
     refresh_done_.fetch_add(1, std::memory_order_release);
     refresh_done_.notify_one();
   }
+}
+
+void Pipeline::offPathPolicy(const char* name) const {
+  if (const std::string w = rt::applyThreadPolicy(name, config_.off_path); !w.empty())
+    log::get("pipeline").warn("{}: {}", name, w);
 }
 
 void Pipeline::slowDown(OffPath stage) const {

@@ -23,6 +23,11 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_EQ(c->roi.right, cv::Rect(476, 344, 400, 340));
   EXPECT_EQ(c->track.fifo_priority, 70);
   EXPECT_EQ(c->capture.cpu, -1);
+  EXPECT_EQ(c->off_path.fifo_priority, 0);
+  EXPECT_EQ(c->off_path.cpu, -1);
+  auto pinned = parseDaemonConfig("[realtime]\noff_path = { cpu = 0 }\n", kShipped);
+  ASSERT_TRUE(pinned) << pinned.error().message;
+  EXPECT_EQ(pinned->off_path.cpu, 0);
   EXPECT_DOUBLE_EQ(c->fps, 30.0);
   EXPECT_EQ(c->tracker.stereo_refresh, 25);
   EXPECT_EQ(c->tracker.template_refresh, 25);
@@ -155,6 +160,9 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError("[realtime]\ntrack = { priority = 120 }\n",
               "pulsetrackd.toml:2: realtime.track.priority");
   expectError("[realtime]\ntrack = { prio = 1 }\n", "unknown key 'realtime.track.prio'");
+  expectError("[realtime]\noff_path = { priority = 10 }\n",
+              "[realtime] off_path priority is 10: the stages off the features' path run at "
+              "normal priority (0)");
   expectError("rig_id = \n", "pulsetrackd.toml:1:");  // a syntax error
   expectError("rig_id = \"\"\n", "rig_id must not be empty");
   expectError("[source.faults]\nmissing_trigger_every = -1\n",

@@ -77,6 +77,9 @@ struct DaemonConfig {
   bool lock_memory = true;
   double deadline_ms = 20.0;
   rt::ThreadPolicy capture{80, -1}, track{70, -1}, publish{60, -1};
+  // The stages off the features' path (field, refresh, preview): always normal priority; their
+  // CPU (-1: any). On a board, CPUs other than the track stage's keep them out of its caches.
+  rt::ThreadPolicy off_path{0, -1};
   int health_period_ms = 500;
 };
 

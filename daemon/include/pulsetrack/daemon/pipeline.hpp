@@ -155,6 +155,9 @@ class Pipeline {
   void previewLoop();
   // The test hook's stall, if any (slowStageBy).
   void slowDown(OffPath stage) const;
+  // A stage off the path, on its own thread: its name and [realtime] off_path (normal priority,
+  // its CPU); a CPU it cannot have is said once in the log.
+  void offPathPolicy(const char* name) const;
   // The stereo refresh runs as a stage of its own (else the tracker has none to run).
   [[nodiscard]] bool refreshing() const {
     return config_.tracker.stereo_refresh > 0 && config_.tracker.refinement;
