@@ -27,9 +27,9 @@
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <atomic>
+#include <cerrno>
 #include <chrono>
 #include <cstdio>
-#include <cerrno>
 #include <cstdlib>
 #include <cstring>
 #include <ctime>
@@ -102,9 +102,10 @@ int main(int argc, char** argv) try {
       ->check(CLI::IsMember({"off", "on", "both"}))
       ->capture_default_str();
   int receiver_fifo = 0;
-  app.add_option("--receiver-fifo", receiver_fifo,
-                 "This process's threads (the subscriber's) at SCHED_FIFO with this priority (1-99; "
-                 "0: normal, as a desktop subscriber)")
+  app.add_option(
+         "--receiver-fifo", receiver_fifo,
+         "This process's threads (the subscriber's) at SCHED_FIFO with this priority (1-99; "
+         "0: normal, as a desktop subscriber)")
       ->check(CLI::Range(0, 99));
   bool pin = false;
   app.add_flag("--pin", pin,
@@ -144,8 +145,7 @@ int main(int argc, char** argv) try {
   std::printf("frame handed over -> features sample received by another process (DDS, loopback)\n");
   std::printf(
       "%-10s %-8s %-8s %6s %8s %9s %9s %9s %9s %7s %8s %9s %s\n", "DDS", "preview", "off-path",
-      "rate", "samples",
-      "p50 us", "p99 us", "p99.9 us", "max us", "lost", "drops", "deadline",
+      "rate", "samples", "p50 us", "p99 us", "p99.9 us", "max us", "lost", "drops", "deadline",
       "track stage (handed over -> tracked) p50/p99 us, preview stage p50/p99 us, capture's copy "
       "p50/p99 us, images received");
   int domain = 90;
@@ -159,7 +159,8 @@ int main(int argc, char** argv) try {
         if (!wanted(security, secured) || !wanted(preview, with_preview) ||
             !wanted(off_path, with_off_path))
           continue;
-        for (const double rate : rates) runs.emplace_back(secured, with_preview, with_off_path, rate);
+        for (const double rate : rates)
+          runs.emplace_back(secured, with_preview, with_off_path, rate);
       }
     }
   }
@@ -305,9 +306,8 @@ int main(int argc, char** argv) try {
     if (with_preview) stages += std::to_string(images_received);
     std::printf("%-10s %-8s %-8s %4.0f Hz %8zu %9.0f %9.0f %9.0f %9.0f %7llu %8llu %9llu %s\n",
                 secured ? "secured" : "unsecured", with_preview ? "on" : "off",
-                with_off_path ? "on" : "off", rate, us.size(),
-                pct(0.5), pct(0.99), pct(0.999), us.empty() ? 0.0 : us.back(),
-                static_cast<unsigned long long>(expected - received),
+                with_off_path ? "on" : "off", rate, us.size(), pct(0.5), pct(0.99), pct(0.999),
+                us.empty() ? 0.0 : us.back(), static_cast<unsigned long long>(expected - received),
                 static_cast<unsigned long long>(h.drops),
                 static_cast<unsigned long long>(h.deadline_misses), stages.c_str());
     // Where the time goes: each stage as the daemon's health measures it (capture: the source's
@@ -331,7 +331,8 @@ int main(int argc, char** argv) try {
         "to this process and the wake-ups)\n",
         path_p50, pct(0.5) - path_p50);
     std::printf(
-        "           this machine's wake-up lateness (SCHED_FIFO thread, 1 ms sleeps, %zu): p50 %.0f "
+        "           this machine's wake-up lateness (SCHED_FIFO thread, 1 ms sleeps, %zu): p50 "
+        "%.0f "
         "us, p99 %.0f us, p99.9 %.0f us, max %.0f us\n",
         wake_us.size(), pctOf(wake_us, 0.5), pctOf(wake_us, 0.99), pctOf(wake_us, 0.999),
         wake_us.empty() ? 0.0 : wake_us.back());

@@ -4,12 +4,12 @@
 #include <fmt/format.h>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <csignal>
 #include <cstdio>
-#include <algorithm>
 #include <optional>
-#include <utility>
 #include <thread>
+#include <utility>
 
 #include "pulsetrack/daemon/config.hpp"
 #include "pulsetrack/daemon/log.hpp"
@@ -67,7 +67,10 @@ int run(int argc, char** argv) {
                  "preview) takes MS longer per pair (it must delay no features sample; health "
                  "counts its skips); repeatable")
       ->check([](const std::string& v) -> std::string {
-        return slowStage(v) ? "" : "expected STAGE:MS (STAGE field, refresh or preview; MS 0-99999), got '" + v + "'";
+        return slowStage(v)
+                   ? ""
+                   : "expected STAGE:MS (STAGE field, refresh or preview; MS 0-99999), got '" + v +
+                         "'";
       });
   bool list_cameras = false;
   app.add_flag("--list-cameras", list_cameras,

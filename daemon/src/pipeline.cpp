@@ -207,8 +207,7 @@ void Pipeline::stop() {
     preview_tap_->sequence().fetch_add(1);
     preview_tap_->sequence().notify_all();
   }
-  for (std::thread* t :
-       {&capture_, &track_, &publish_, &field_, &refresh_, &command_, &preview_}) {
+  for (std::thread* t : {&capture_, &track_, &publish_, &field_, &refresh_, &command_, &preview_}) {
     if (t->joinable()) t->join();
   }
   source_->stop();
@@ -241,6 +240,10 @@ void Pipeline::captureLoop() {
       }
       f.captured_ns = now;
       capture_lat_.record(static_cast<uint64_t>(std::max<int64_t>(0, now - f.pair.t_left_ns)));
+      frames_.publish();
+      // The slot just published is read by the track stage only, and written again by this
+      // stage only after two more publishes: the recorder and the preview copy it now, off the
+      // pair's latency.
       if (record::LiveRecorder* rec = recorder_live_.load(std::memory_order_acquire)) {
         // A copy into a free slot, or a counted skip: never a wait.
         // A new recording (its generation is stored before its pointer): its frame 0.
@@ -253,9 +256,6 @@ void Pipeline::captureLoop() {
                           f.pair.t_right_ns, 0},
                          f.pair.left, f.pair.right);
       }
-      frames_.publish();
-      // The slot just published is read by the track stage only, and written again by this
-      // stage only after two more publishes: the preview copies it now, off the pair's latency.
       if (preview_tap_) (void)preview_tap_->offer(f.pair, now);
       last_frame_ns_.store(now, std::memory_order_relaxed);
       faulted = false;
@@ -424,7 +424,8 @@ void Pipeline::trackLoop() {
       wake_publish();
       continue;
     }
-    handover_lat_.record(static_cast<uint64_t>(std::max<int64_t>(0, rt::monotonicNs() - f->captured_ns)));
+    handover_lat_.record(
+        static_cast<uint64_t>(std::max<int64_t>(0, rt::monotonicNs() - f->captured_ns)));
     if (const int64_t stall = stall_ms_.exchange(0); stall > 0)
       std::this_thread::sleep_for(std::chrono::milliseconds(stall));
     // Commands, between pairs (the command thread checked them).
@@ -1053,9 +1054,9 @@ State Pipeline::health(const Notifier& notifier) {
   if (refreshing()) {
     // Pairs whose job it never took; matches replaced by newer ones before the track stage took
     // them (the track stage slower than the refresh).
-    output_state += fmt::format("; refresh stage: {} measured, {} pairs skipped, {} replaced",
-                                refreshes_.load(), refresh_jobs_.drops(),
-                                refresh_outcomes_.drops());
+    output_state +=
+        fmt::format("; refresh stage: {} measured, {} pairs skipped, {} replaced",
+                    refreshes_.load(), refresh_jobs_.drops(), refresh_outcomes_.drops());
   }
   if (preview_tap_) {
     output_state += fmt::format("; preview stage: {} sent, {} copies skipped",

@@ -525,8 +525,8 @@ TEST(Ros2Output, SlowStagesOffThePathDelayNoFeaturesSampleAndTheirSkipsAreCounte
   std::cout << "slow field, refresh and preview stages (150 ms a pair at 10 pairs/s): " << gaps
             << " features frames missing of " << r.features.size() << " (" << drops
             << " pairs dropped, counted); track p50/p99 " << track.first << "/" << track.second
-            << " us, publish p99 "
-            << publish.second << " us; " << counted << "of " << tracked << " tracked\n";
+            << " us, publish p99 " << publish.second << " us; " << counted << "of " << tracked
+            << " tracked\n";
 }
 
 // Every pair of a recording through pulsetrackd (replay, lossless: none dropped) and through

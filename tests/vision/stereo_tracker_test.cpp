@@ -244,20 +244,18 @@ TEST(StereoTracker, StereoRefreshInPartsMatchesTheRefreshInARow) {
     pending = true;
   }
   late_taken += late.applyRefresh(late_outcome);  // the last pair's, before the next one
-  EXPECT_GT(taken, 100);  // 25 a pair, of 11 pairs; a few gated out
+  EXPECT_GT(taken, 100);                          // 25 a pair, of 11 pairs; a few gated out
   EXPECT_GT(late_taken, 100);
   ASSERT_EQ(in_a_row.features().size(), in_parts.features().size());
   double late_px = 0.0, late_sq = 0.0;
   int late_n = 0;
   for (size_t k = 0; k < in_a_row.features().size(); ++k) {
-    const Feature &a = in_a_row.features()[k], &b = in_parts.features()[k],
-                  &c = late.features()[k];
+    const Feature &a = in_a_row.features()[k], &b = in_parts.features()[k], &c = late.features()[k];
     EXPECT_EQ(a.status, b.status) << k;
     EXPECT_EQ(a.right, b.right) << k;
     EXPECT_EQ(a.point, b.point) << k;
     EXPECT_EQ(a.point0, b.point0) << k;
-    if (a.status == FeatureStatus::kOk && c.status == FeatureStatus::kOk)
-    {
+    if (a.status == FeatureStatus::kOk && c.status == FeatureStatus::kOk) {
       late_px = std::max(late_px, cv::norm(a.right - c.right));
       late_sq += std::pow(cv::norm(a.right - c.right), 2);
       ++late_n;
@@ -279,7 +277,8 @@ TEST(StereoTracker, StereoRefreshInPartsMatchesTheRefreshInARow) {
   ASSERT_TRUE(in_parts.initialize(left[11], right[11], roiFor(s, 19.0), 20.0));
   const std::vector<Feature> fresh(in_parts.features().begin(), in_parts.features().end());
   EXPECT_EQ(in_parts.applyRefresh(outcome), 0);
-  for (size_t k = 0; k < fresh.size(); ++k) EXPECT_EQ(in_parts.features()[k].point0, fresh[k].point0);
+  for (size_t k = 0; k < fresh.size(); ++k)
+    EXPECT_EQ(in_parts.features()[k].point0, fresh[k].point0);
 }
 
 // Re-detection: when most features are lost (here the right camera goes dark), the tracker

@@ -1528,9 +1528,8 @@ void StereoTracker::prepareRefresh(const cv::Mat& left, const cv::Mat& right,
       }
       it.origin[c] = {x0, y0};
       it.size[c] = {x1 - x0, y1 - y0};
-      uint8_t* dst = job.pixels.data() +
-                     (job.count * 2 + c) * static_cast<size_t>(job.side) *
-                         static_cast<size_t>(job.side);
+      uint8_t* dst = job.pixels.data() + (job.count * 2 + c) * static_cast<size_t>(job.side) *
+                                             static_cast<size_t>(job.side);
       for (int y = y0; y < y1; ++y)
         std::memcpy(dst + static_cast<size_t>(y - y0) * static_cast<size_t>(job.side),
                     img.ptr<uint8_t>(y) + x0, static_cast<size_t>(x1 - x0));

@@ -210,7 +210,7 @@ class Pipeline {
   std::atomic<uint64_t> refresh_seq_{0};   // jobs handed over (and stop()'s wake-up)
   std::atomic<uint64_t> refresh_done_{0};  // jobs measured (and stop()'s wake-up)
   std::atomic<uint64_t> refreshes_{0};     // jobs measured, for health
-  rt::LatencyHistogram refresh_lat_;  // pair handed over -> its refresh measured
+  rt::LatencyHistogram refresh_lat_;       // pair handed over -> its refresh measured
   std::thread refresh_;
   std::atomic<uint64_t> tracked_{0}, processed_{0}, deadline_misses_{0};
   rt::SystemClock clock_;

@@ -510,10 +510,10 @@ class StereoTracker {
   std::vector<Feature> features_;
   std::vector<State> states_;
   std::vector<StereoCandidate> candidates_;
-  std::vector<float> scores_;       // sized once: (2R+1)^2
-  std::vector<uint8_t> scratch_;    // a padded copy of a window near the image border
-  std::vector<double> residuals_;   // surface gate, sized to max_features
-  RefreshJob refresh_job_;  // refreshStereo()'s, sized once
+  std::vector<float> scores_;      // sized once: (2R+1)^2
+  std::vector<uint8_t> scratch_;   // a padded copy of a window near the image border
+  std::vector<double> residuals_;  // surface gate, sized to max_features
+  RefreshJob refresh_job_;         // refreshStereo()'s, sized once
   RefreshOutcome refresh_outcome_;
   int retirable_ = 0;  // features past retire_after_pairs
   size_t refresh_next_ = 0;
