@@ -7,6 +7,48 @@
 
 namespace pulsetrack::sim {
 
+ErrorParts errorParts(const std::vector<RowError>& rows) {
+  struct Sums {
+    cv::Vec3d sum;
+    double sq = 0.0;
+    long n = 0;
+    long last_frame = -2;
+    cv::Vec3d last;
+  };
+  std::map<int, Sums> by_id;
+  double diff_sq = 0.0;
+  ErrorParts p;
+  long n = 0;
+  double total_sq = 0.0;
+  for (const RowError& r : rows) {  // in frame order per feature, as a track CSV is written
+    if (std::isnan(r.error_mm)) continue;
+    Sums& s = by_id[r.id];
+    if (r.frame == s.last_frame + 1) {
+      diff_sq += (r.error_vec - s.last).dot(r.error_vec - s.last);
+      ++p.pairs;
+    }
+    s.last_frame = r.frame;
+    s.last = r.error_vec;
+    s.sum += r.error_vec;
+    s.sq += r.error_vec.dot(r.error_vec);
+    ++s.n;
+    ++n;
+    total_sq += r.error_vec.dot(r.error_vec);
+  }
+  if (n == 0) return p;
+  double bias_sq = 0.0;
+  for (const auto& [id, s] : by_id) {
+    const cv::Vec3d mean = s.sum / static_cast<double>(s.n);
+    bias_sq += static_cast<double>(s.n) * mean.dot(mean);
+  }
+  const double within = std::max(0.0, total_sq - bias_sq) / static_cast<double>(n);
+  const double noise = p.pairs > 0 ? 0.5 * diff_sq / static_cast<double>(p.pairs) : 0.0;
+  p.bias_mm = std::sqrt(bias_sq / static_cast<double>(n));
+  p.noise_mm = std::sqrt(std::min(noise, within));
+  p.slow_mm = std::sqrt(std::max(0.0, within - noise));
+  return p;
+}
+
 vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim,
                                          const std::vector<record::TrackRow>& rows,
                                          double outlier_threshold_mm, bool fields) {
@@ -95,6 +137,7 @@ vision::Result<Evaluation> evaluateTrack(const StereoSimulator& sim,
         all[std::min(all.size() - 1, static_cast<size_t>(0.99 * static_cast<double>(all.size())))];
     ev.max_mm = all.back();
   }
+  ev.parts = errorParts(ev.rows);
   for (const auto& [id, es] : errors) {
     FeatureScore fs;
     fs.id = id;

@@ -8,9 +8,11 @@
 #include <iostream>
 #include <opencv2/core/persistence.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <random>
 #include <regex>
 #include <vector>
 
+#include "pulsetrack/sim/evaluate.hpp"
 #include "pulsetrack/sim/paper_rig.hpp"
 #include "test_util.hpp"
 
@@ -344,6 +346,47 @@ TEST(SceneFile, MissingFileIsNamed) {
   ASSERT_FALSE(s);
   EXPECT_EQ(s.error().message,
             "/nonexistent/scene.toml: cannot open the scene file: No such file or directory");
+}
+
+// evaluate's error parts on rows made with known parts: each feature a constant bias, white noise
+// and a slow sine, some rows not ok (their neighbours are no consecutive pair). Each part comes
+// back within its sampling error, and the three squares add up to the RMS's square.
+TEST(ErrorParts, SeparateABiasASlowChangeAndWhiteNoise) {
+  std::mt19937 rng(7);
+  std::normal_distribution<double> white(0.0, 0.05);
+  std::vector<RowError> rows;
+  double bias_sq = 0.0, total_sq = 0.0;
+  long n = 0;
+  constexpr int kFeatures = 20, kFrames = 400;
+  for (long frame = 0; frame < kFrames; ++frame) {
+    const double slow =
+        0.03 * std::sqrt(2.0) * std::sin(2.0 * M_PI * static_cast<double>(frame) / 100.0);
+    for (int id = 0; id < kFeatures; ++id) {
+      RowError r{frame, id, std::numeric_limits<double>::quiet_NaN(), {}};
+      if ((frame + id) % 37 != 0) {  // about 3 % not ok
+        const double bias = 0.02 * (id % 5 - 2);
+        r.error_vec = {0.5 * bias, 0.0, bias + slow + white(rng)};
+        r.error_mm = cv::norm(r.error_vec);
+        total_sq += r.error_vec.dot(r.error_vec);
+        bias_sq += 1.25 * bias * bias;
+        ++n;
+      }
+      rows.push_back(r);
+    }
+  }
+  const ErrorParts p = errorParts(rows);
+  EXPECT_NEAR(p.bias_mm, std::sqrt(bias_sq / static_cast<double>(n)), 0.005);
+  EXPECT_NEAR(p.noise_mm, 0.05, 0.003);
+  EXPECT_NEAR(p.slow_mm, 0.03, 0.005);
+  EXPECT_LT(p.pairs, n);  // a gap breaks the pair
+  EXPECT_GT(p.pairs, n - kFeatures - kFrames * kFeatures / 37 * 2);
+  EXPECT_NEAR(p.bias_mm * p.bias_mm + p.slow_mm * p.slow_mm + p.noise_mm * p.noise_mm,
+              total_sq / static_cast<double>(n), 1e-9);
+  // Nothing scored: all zero.
+  const ErrorParts none =
+      errorParts({RowError{0, 1, std::numeric_limits<double>::quiet_NaN(), {}}});
+  EXPECT_EQ(none.pairs, 0);
+  EXPECT_EQ(none.bias_mm + none.slow_mm + none.noise_mm, 0.0);
 }
 
 }  // namespace

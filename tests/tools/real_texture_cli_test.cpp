@@ -36,6 +36,14 @@ void readEvaluation(const std::string& output, int& features, double& rms_mm) {
   if (std::regex_search(output, m, std::regex("features +([0-9]+)"))) features = std::stoi(m[1]);
   if (std::regex_search(output, m, std::regex("3D error +RMS ([0-9.]+) mm")))
     rms_mm = std::stod(m[1]);
+  // Its error parts (bias, slow change, pair-to-pair noise): their squares add up to the RMS's.
+  const std::regex parts(
+      "per-feature bias ([0-9.]+) mm, slow change ([0-9.]+), pair-to-pair noise ([0-9.]+)");
+  EXPECT_TRUE(std::regex_search(output, m, parts)) << output;
+  if (m.size() == 4) {
+    const double b = std::stod(m[1]), s = std::stod(m[2]), n = std::stod(m[3]);
+    EXPECT_NEAR(std::sqrt(b * b + s * s + n * n), rms_mm, 0.0003) << output;
+  }
 }
 
 // Simulates the scene (unless done) and tracks it, with a left ROI or none (roi empty).

@@ -114,6 +114,12 @@ int runEvaluate(const EvaluateArgs& a) {
       ev->outlier_threshold_mm, ev->outliers,
       ev->rows_ok > 0 ? 100.0 * static_cast<double>(ev->outliers) / static_cast<double>(ev->rows_ok)
                       : 0.0);
+  if (ev->rows_ok > 0) {
+    fmt::print(
+        "error parts           per-feature bias {:.4f} mm, slow change {:.4f}, pair-to-pair noise "
+        "{:.4f} (their squares add up to the RMS's; averaging pairs removes only the noise)\n",
+        ev->parts.bias_mm, ev->parts.slow_mm, ev->parts.noise_mm);
+  }
   if (worst != nullptr) {
     fmt::print("per-feature RMS       median {:.4f} mm, worst {:.4f} mm (id {}, {})\n",
                per[per.size() / 2], worst->rms_mm, worst->id, worst->truth);

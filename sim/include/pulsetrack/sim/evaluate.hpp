@@ -32,6 +32,19 @@ struct RowError {
   cv::Vec3d error_vec;
 };
 
+// The ok rows' 3D error in three parts whose squares add up to the RMS's square: what each feature
+// carries all along (the RMS of its mean error vector, e.g. a stereo match's bias), what changes
+// from one pair to the next (white noise: half the mean square of a feature's error change between
+// consecutive ok frames), and the slow rest (changes over many pairs: drift, a bias that follows
+// the motion). Averaging pairs removes only the second; a better measurement per pair the others.
+struct ErrorParts {
+  double bias_mm = 0.0;
+  double slow_mm = 0.0;
+  double noise_mm = 0.0;
+  long pairs = 0;  // consecutive ok rows of one feature that the noise comes from
+};
+ErrorParts errorParts(const std::vector<RowError>& rows);
+
 struct Evaluation {
   int features = 0;
   int unmatched = 0;  // never ok, or no truth found
@@ -43,6 +56,7 @@ struct Evaluation {
   long outliers = 0;  // ok rows with error above the threshold
   double outlier_threshold_mm = 0.5;
   std::map<std::string, long> not_ok;  // status -> rows
+  ErrorParts parts;
   std::vector<FeatureScore> per_feature;
   std::vector<RowError> rows;
 };
