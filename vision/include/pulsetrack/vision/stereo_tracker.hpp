@@ -220,6 +220,9 @@ struct TrackerConfig {
   // the mean image motion of its this many nearest ok features (in the reference pair), added
   // to its own reference position.
   int reacquire_neighbours = 6;
+  // The neighbours' motion taken as an affine function of their positions (not their mean) where
+  // they surround the feature: a sag's bowl and a turn are not blamed on the feature.
+  bool affine_prediction = true;
   // ... and searched within this many px of there (the prediction is good to a pixel: 0.3 px
   // RMS on cortex-hard; a smaller window also keeps 30 hidden features cheap).
   int reacquire_search_px = 3;
@@ -471,7 +474,8 @@ class StereoTracker {
                      double depth_tolerance_mm, bool fill);
   // Where feature i should be now from its nearest ok features (among the first `among`) and
   // their motion since the epoch; false when none is ok. `spread_px`: the RMS of their motions
-  // about that mean (how far to trust it).
+  // about that mean (how far to trust it). With config.affine_prediction, their motion as an
+  // affine function of their epoch positions where they surround the feature.
   bool predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among,
                double& spread_px) const noexcept;
   bool predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among) const noexcept {
