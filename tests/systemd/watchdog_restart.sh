@@ -33,6 +33,12 @@ trap cleanup EXIT
 
 # Cyclone DDS on loopback only, as the other tests (dds::kLoopbackUri).
 uri='<CycloneDDS><Domain id="any"><General><Interfaces><NetworkInterface name="lo"/></Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex><Peers><Peer Address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>'
+# The shipped config's [realtime] table as it ships, but the stages off the features' path on
+# CPU 0: the kernel's view of every thread is checked below.
+awk '/^\[realtime\]/ { on = 1; print; next } /^\[/ { on = 0 } on' "$src/config/pulsetrackd.toml" |
+  sed 's/^off_path = { priority = 0, cpu = -1 }/off_path = { priority = 0, cpu = 0 }/' >"$work/realtime.toml"
+grep -q '^off_path = { priority = 0, cpu = 0 }' "$work/realtime.toml" ||
+  { echo "FAIL: the shipped [realtime] table has no 'off_path = { priority = 0, cpu = -1 }' line"; exit 1; }
 # Inside the namespaces: a fresh /run and cgroup2, a private copy of the user database, the
 # units, then systemd as PID 1.
 cat >"$work/inner.sh" <<INNER
@@ -58,9 +64,8 @@ domain_id = 91
 kind = "sim"
 scene = "scenes/cortex-60s.toml"
 fps = 10.0
-[realtime]
-lock_memory = true
 TOML
+cat "$work/realtime.toml" >>/run/pt/config/test.toml
 sed -e 's|/usr/sbin/pulsetrackd|/run/pt/bin/pulsetrackd|g' \
     -e 's|/etc/pulsetrack/pulsetrackd.toml|/run/pt/config/test.toml|g' \
     -e 's|^ExecStart=\(.*\)|ExecStart=\1 --stall-track-after 20|' \
@@ -131,6 +136,27 @@ fail=0
 [[ $new_pid != "$active_pid" && $new_pid != 0 ]] || { echo "FAIL: the same process still runs"; fail=1; }
 [[ $user == pulsetrack ]] || { echo "FAIL: runs as '$user', not the pulsetrack user"; fail=1; }
 [[ $policy == *FF* ]] || { echo "FAIL: no SCHED_FIFO thread (classes: $policy)"; fail=1; }
+# Each thread as the kernel sees it (procps and /proc, not the daemon's code): the stages on the
+# features' path SCHED_FIFO at the shipped priorities, on any CPU; those off it (field, stereo
+# refresh, preview) at normal priority, on CPU 0 as [realtime] off_path says.
+threads=$(nsenter -t "$pid1" -m -p ps -L -o tid=,comm=,cls=,rtprio= -p "$new_pid" 2>/dev/null || true)
+echo "--- threads ---"; echo "$threads"
+all_cpus=$(nsenter -t "$pid1" -m -p awk '/^Cpus_allowed_list/ { print $2 }' /proc/1/status 2>/dev/null || true)
+expect_thread() {  # expect_thread NAME CLASS RTPRIO CPUS
+  local line tid cls prio cpus
+  line=$(awk -v n="$1" '$2 == n' <<<"$threads" | head -1)
+  [[ -n $line ]] || { echo "FAIL: no thread named $1"; fail=1; return; }
+  read -r tid _ cls prio <<<"$line"
+  cpus=$(nsenter -t "$pid1" -m -p awk '/^Cpus_allowed_list/ { print $2 }' "/proc/$new_pid/task/$tid/status" 2>/dev/null || true)
+  [[ $cls == "$2" && $prio == "$3" && $cpus == "$4" ]] ||
+    { echo "FAIL: thread $1 is $cls priority $prio on CPUs '$cpus', expected $2 $3 on '$4'"; fail=1; }
+}
+expect_thread pt-capture FF 80 "$all_cpus"
+expect_thread pt-track FF 70 "$all_cpus"
+expect_thread pt-publish FF 60 "$all_cpus"
+expect_thread pt-field TS - 0
+expect_thread pt-refresh TS - 0
+expect_thread pt-preview TS - 0
 grep -q "PRIORITY=6" <<<"$verbose" && grep -q "SYSLOG_IDENTIFIER=pulsetrackd" <<<"$verbose" ||
   { echo "FAIL: the daemon's '[pipeline] running' line is not in the journal with PRIORITY=6 and SYSLOG_IDENTIFIER=pulsetrackd"; echo "$verbose" | head -30; fail=1; }
 # The stall's fault is logged as an error (PRIORITY=3), not as information.
