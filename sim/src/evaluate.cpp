@@ -10,7 +10,6 @@ namespace pulsetrack::sim {
 ErrorParts errorParts(const std::vector<RowError>& rows) {
   struct Sums {
     cv::Vec3d sum;
-    double sq = 0.0;
     long n = 0;
     long last_frame = -2;
     cv::Vec3d last;
@@ -30,7 +29,6 @@ ErrorParts errorParts(const std::vector<RowError>& rows) {
     s.last_frame = r.frame;
     s.last = r.error_vec;
     s.sum += r.error_vec;
-    s.sq += r.error_vec.dot(r.error_vec);
     ++s.n;
     ++n;
     total_sq += r.error_vec.dot(r.error_vec);
