@@ -133,6 +133,7 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
   double worst_return_px = 0.0, worst_step = 0.0, floor_t = 0.0;
   int max_total = 0, max_id = 0;
   std::set<int> first_ids;
+  std::map<int, std::pair<std::string, bool>> went_out;  // id: the gate, not ok since
   cv::Vec3d prev_meas(0, 0, 0), prev_truth(0, 0, 0);
   // Per pair, for the figure: time (min), signal error (mm, 3D), ok, total, time per pair (ms);
   // per fifth pair: the field's held-out RMS (mm).
@@ -173,6 +174,17 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
           first_set.push_back(tr->uv);
           first_p0.push_back(scene.position(tr->uv[0], tr->uv[1], t));
         }
+    }
+    // The gate that took each of the first detection's features out of view, the last time.
+    for (const Feature& f : pr.features) {
+      if (!first_ids.contains(f.id)) continue;
+      auto& [why, since_ok] = went_out[f.id];
+      if (f.status == FeatureStatus::kOk) {
+        since_ok = false;
+      } else if (!since_ok) {
+        why = statusText(f.status, f.gate);
+        since_ok = true;
+      }
     }
     cv::Vec3d fixed(0, 0, 0);
     for (const cv::Vec2d& uv : first_set)
@@ -297,11 +309,31 @@ TEST(TrackingSession, HoursLongTrackingKeepsIdsAndStaysDriftFree) {
   std::cout << "time per pair (process, field, refresh): " << a.medianUs() / 1e3
             << " ms median in the first tenth, " << z.medianUs() / 1e3 << " ms in the last\n";
 
-  int first_ok = 0;  // the first detection's features still ok at the end
-  for (const Feature& f : session.last().features)
-    if (first_ids.contains(f.id) && f.status == FeatureStatus::kOk) ++first_ok;
+  // The first detection's features at the end: ok, held by a gate (which), or retired (and the
+  // gate that took them out of view for the last time: what a change would have to mend).
+  int first_ok = 0;
+  std::map<std::string, int> first_held, first_retired;
+  std::set<int> present;
+  for (const Feature& f : session.last().features) {
+    present.insert(f.id);
+    if (!first_ids.contains(f.id)) continue;
+    if (f.status == FeatureStatus::kOk)
+      ++first_ok;
+    else
+      ++first_held[statusText(f.status, f.gate)];
+  }
+  for (const auto& [id, out] : went_out)
+    if (!present.contains(id)) ++first_retired[out.first];
+  const auto counts = [](const std::map<std::string, int>& m) {
+    std::string text;
+    for (const auto& [why, count] : m)
+      text += (text.empty() ? "" : ", ") + why + " " + std::to_string(count);
+    return text;
+  };
   std::cout << "of the first detection's " << first_ids.size() << " features, " << first_ok
-            << " are ok at the end under their ids\n";
+            << " are ok at the end under their ids; held: " << counts(first_held)
+            << "; retired, by the gate that last took them out of view: " << counts(first_retired)
+            << "\n";
 
   // The figure: errors, the feature count and the time per pair over the run.
   analysis::Figure fig(1400, 1100, 3, 1, spec->name + ": hours-long tracking against the truth");

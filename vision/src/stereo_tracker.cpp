@@ -9,6 +9,7 @@
 #include <numeric>
 #include <opencv2/imgproc.hpp>
 
+#include "pulsetrack/vision/neighbour_motion.hpp"
 #include "pulsetrack/vision/triangulation.hpp"
 
 namespace pulsetrack::vision {
@@ -1182,13 +1183,10 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
   return Gate::kNone;
 }
 
-bool StereoTracker::predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among,
-                            double& spread_px) const noexcept {
+int StereoTracker::nearestOk(size_t i, size_t among, NeighbourList& idx) const noexcept {
   // The k nearest ok features at the epoch (k small: an insertion list on the stack).
-  constexpr int kMax = 16;
-  const int k = std::clamp(config_.reacquire_neighbours, 1, kMax);
-  std::array<double, kMax> dist{};
-  std::array<size_t, kMax> idx{};
+  const int k = std::clamp(config_.reacquire_neighbours, 1, kMaxNeighbours);
+  std::array<double, kMaxNeighbours> dist{};
   int n = 0;
   const cv::Vec2d at = states_[i].epoch_left;
   const size_t limit = std::min(among, features_.size());
@@ -1206,68 +1204,40 @@ bool StereoTracker::predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, s
     dist[static_cast<size_t>(m)] = d2;
     idx[static_cast<size_t>(m)] = j;
   }
+  return n;
+}
+
+bool StereoTracker::predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among,
+                            double& spread_px) const noexcept {
+  constexpr int kMax = kMaxNeighbours;
+  NeighbourList idx{};
+  const int n = nearestOk(i, among, idx);
+  const cv::Vec2d at = states_[i].epoch_left;
   if (n == 0) return false;
-  cv::Vec2d dl(0, 0), dr(0, 0);
+  // The neighbours' motions since the epoch as an affine function of where they were then
+  // (neighbour_motion.hpp: a sag's bowl and a turn are not blamed on the feature); their mean
+  // where they surround it too thinly.
+  std::array<cv::Vec2d, kMax> pos{}, ml{}, mr{};
   for (int m = 0; m < n; ++m) {
-    const size_t j = idx[static_cast<size_t>(m)];
-    dl += features_[j].left - states_[j].epoch_left;
-    dr += states_[j].right_track - states_[j].epoch_right;
+    const auto q = static_cast<size_t>(m);
+    const size_t j = idx[q];
+    pos[q] = states_[j].epoch_left;
+    ml[q] = features_[j].left - states_[j].epoch_left;
+    mr[q] = states_[j].right_track - states_[j].epoch_right;
   }
-  dl /= n;
-  dr /= n;
-  // The neighbours' motion as an affine function of where they were at the epoch, at the
-  // feature's own epoch position: a sag's bowl or a turn moves the tissue by more on one side of
-  // the feature than on the other, which their mean would blame on the feature (the motion gate)
-  // more and more as the shift grows. Their mean where they surround the feature too thinly.
-  cv::Vec2d gx_l(0, 0), gy_l(0, 0), gx_r(0, 0), gy_r(0, 0), centroid(0, 0);
-  if (config_.affine_prediction && n >= 4) {
-    for (int m = 0; m < n; ++m) centroid += states_[idx[static_cast<size_t>(m)]].epoch_left - at;
-    centroid /= n;
-    cv::Matx22d cov = cv::Matx22d::zeros();
-    cv::Matx22d cl = cv::Matx22d::zeros(), cr = cv::Matx22d::zeros();  // rows: x, y; cols: motion
-    for (int m = 0; m < n; ++m) {
-      const size_t j = idx[static_cast<size_t>(m)];
-      const cv::Vec2d x = states_[j].epoch_left - at - centroid;
-      const cv::Vec2d ml = features_[j].left - states_[j].epoch_left - dl;
-      const cv::Vec2d mr = states_[j].right_track - states_[j].epoch_right - dr;
-      cov += x * x.t();
-      cl += x * ml.t();
-      cr += x * mr.t();
-    }
-    cov *= 1.0 / n;
-    cl *= 1.0 / n;
-    cr *= 1.0 / n;
-    // The spread's smaller axis (eigenvalue of the 2x2): at least 2 px; and the feature inside
-    // the neighbours' spread (Mahalanobis distance from their centroid <= 3): an affine model
-    // interpolates, its extrapolation would amplify the neighbours' own noise.
-    const double tr = cov(0, 0) + cov(1, 1);
-    const double det = cov(0, 0) * cov(1, 1) - cov(0, 1) * cov(1, 0);
-    const double small = 0.5 * tr - std::sqrt(std::max(0.0, 0.25 * tr * tr - det));
-    const cv::Matx22d cov_inv = small > 4.0 ? cov.inv() : cv::Matx22d::zeros();
-    if (small > 4.0 && centroid.dot(cov_inv * centroid) <= 3.0 * 3.0) {
-      const cv::Matx22d gl = cov_inv * cl, gr = cov_inv * cr;  // d(motion)/d(position)
-      gx_l = {gl(0, 0), gl(0, 1)};
-      gy_l = {gl(1, 0), gl(1, 1)};
-      gx_r = {gr(0, 0), gr(0, 1)};
-      gy_r = {gr(1, 0), gr(1, 1)};
-    }
-  }
-  const auto model = [&](const cv::Vec2d& x, bool right) {  // x relative to the centroid
-    return right ? dr + x[0] * gx_r + x[1] * gy_r : dl + x[0] * gx_l + x[1] * gy_l;
-  };
+  const auto fit_l = fitNeighbourMotion(pos.data(), ml.data(), n, at, config_.affine_prediction);
+  const auto fit_r = fitNeighbourMotion(pos.data(), mr.data(), n, at, config_.affine_prediction);
   // How differently the neighbours moved (RMS about that model, both cameras' worse): near
   // zero on a surface that moves as one, pixels on a beating heart.
   double var_l = 0.0, var_r = 0.0;
   for (int m = 0; m < n; ++m) {
-    const size_t j = idx[static_cast<size_t>(m)];
-    const cv::Vec2d x = states_[j].epoch_left - at - centroid;
-    const cv::Vec2d el = features_[j].left - states_[j].epoch_left - model(x, false);
-    const cv::Vec2d er = states_[j].right_track - states_[j].epoch_right - model(x, true);
+    const auto q = static_cast<size_t>(m);
+    const cv::Vec2d el = ml[q] - fit_l.at(pos[q]);
+    const cv::Vec2d er = mr[q] - fit_r.at(pos[q]);
     var_l += el.dot(el);
     var_r += er.dot(er);
   }
-  dl = model(-centroid, false);
-  dr = model(-centroid, true);
+  const cv::Vec2d dl = fit_l.at(at), dr = fit_r.at(at);
   spread_px = std::sqrt(std::max(var_l, var_r) / n);
   left = states_[i].epoch_left + dl;
   right_track = states_[i].epoch_right + dr;

@@ -478,6 +478,11 @@ class StereoTracker {
   // affine function of their epoch positions where they surround the feature.
   bool predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among,
                double& spread_px) const noexcept;
+  // Feature i's nearest ok features at the epoch (config.reacquire_neighbours, nearest first;
+  // among the first `among`): how many.
+  static constexpr int kMaxNeighbours = 16;
+  using NeighbourList = std::array<size_t, kMaxNeighbours>;
+  int nearestOk(size_t i, size_t among, NeighbourList& idx) const noexcept;
   bool predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among) const noexcept {
     double spread_px = 0.0;
     return predict(i, left, right_track, among, spread_px);
