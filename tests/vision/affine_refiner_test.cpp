@@ -205,19 +205,97 @@ TEST(ShiftRefiner, RecoversAKnownShiftThroughGainAndBias) {
   EXPECT_LT(rms, 0.015);
 }
 
+// A glint is the light's, not the tissue's: it stays where the view puts it while the tissue
+// moves under it. Left out of the match (ShiftMask), it no longer pulls the match; counted, it
+// does. The glint here: a saturated core of radius 2.5 px and a sheen around it whose excess
+// falls off as a Gaussian of 2.5 px (130 grey levels at the core's edge), 5-9 px from the
+// patch's centre. The sheen reaches past a mask grown by 1 px around the core; the residual
+// (leaveOutSheen) finds it without a size being given.
+TEST(ShiftRefiner, AGlintLeftOutDoesNotPullTheMatch) {
+  std::mt19937 rng(17);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  double sum_all = 0.0, sum_core = 0.0, sum_sheen = 0.0, sum_grown = 0.0, left_out = 0.0;
+  constexpr int kTrials = 40;
+  const auto refine = [](const ShiftTemplate& t, const cv::Mat& img, const cv::Vec2d& at,
+                         const ShiftMask* mask, bool scalar = false) {
+    return t.refine(img.data, img.step, img.cols, img.rows, at, 10, 2e-3, scalar, mask);
+  };
+  for (int trial = 0; trial < kTrials; ++trial) {
+    const Texture tex(static_cast<unsigned>(trial + 300));
+    const cv::Mat src8 = tex.image([](const cv::Vec2d& p) { return p; });
+    ShiftTemplate t;
+    const cv::Vec2d rest(100.0 + 0.5 * u(rng), 100.0 + 0.5 * u(rng));
+    ASSERT_TRUE(t.set(src8.data, src8.step, src8.cols, src8.rows, rest));
+    const cv::Vec2d shift(0.8 * u(rng), 0.8 * u(rng));
+    cv::Mat moved8 = tex.image([&](const cv::Vec2d& p) { return p - shift; });
+    const double angle = CV_PI * u(rng), radius = 7.0 + 2.0 * u(rng);
+    const cv::Vec2d glint = rest + radius * cv::Vec2d(std::cos(angle), std::sin(angle));
+    for (int y = 0; y < moved8.rows; ++y) {
+      for (int x = 0; x < moved8.cols; ++x) {
+        const double r2 = (x - glint[0]) * (x - glint[0]) + (y - glint[1]) * (y - glint[1]);
+        auto& v = moved8.at<uint8_t>(y, x);
+        v = r2 <= 2.5 * 2.5 ? 255 : cv::saturate_cast<uint8_t>(v + 130.0 * std::exp(-r2 / 12.5));
+      }
+    }
+    const cv::Vec2d truth = rest + shift;
+    const auto err = [&](const AffineResult& r) { return cv::norm(r.warp.centre - truth); };
+    // Counted, the glint's pixels may keep the match from settling (it moves all the same).
+    const double e_all = err(refine(t, moved8, rest, nullptr));
+    // The core and 1 px around it left out, then the sheen the residual shows.
+    ShiftMask mask;
+    mask.leaveOutGlints(moved8.data, moved8.step, moved8.cols, moved8.rows, rest, 250, 1);
+    const AffineResult core = refine(t, moved8, rest, &mask);
+    const double e_core = err(core);
+    left_out += t.leaveOutSheen(moved8.data, moved8.step, moved8.cols, moved8.rows,
+                                core.warp.centre, mask, 3.0);
+    const AffineResult sheen = refine(t, moved8, core.warp.centre, &mask);
+    const double e_sheen = err(sheen);
+    // The scalar kernel agrees under a mask too.
+    EXPECT_LT(
+        cv::norm(refine(t, moved8, core.warp.centre, &mask, true).warp.centre - sheen.warp.centre),
+        1e-4)
+        << trial;
+    // The tracker's way: grown by 5 px around the core, then the sheen the residual shows.
+    ShiftMask grown;
+    grown.leaveOutGlints(moved8.data, moved8.step, moved8.cols, moved8.rows, rest, 250, 5);
+    const AffineResult first = refine(t, moved8, rest, &grown);
+    t.leaveOutSheen(moved8.data, moved8.step, moved8.cols, moved8.rows, first.warp.centre, grown,
+                    3.0);
+    const AffineResult last = refine(t, moved8, first.warp.centre, &grown);
+    ASSERT_TRUE(first.converged && last.converged) << trial;
+    const double e_grown = err(last);
+    EXPECT_LT(e_grown, 0.05) << trial;
+    sum_all += e_all * e_all;
+    sum_core += e_core * e_core;
+    sum_sheen += e_sheen * e_sheen;
+    sum_grown += e_grown * e_grown;
+  }
+  const auto rms = [&](double sum) { return std::sqrt(sum / kTrials); };
+  std::cout << "a glint 5-9 px from the centre of 40 shifted patches, match error RMS: counted "
+            << rms(sum_all) << " px; core + 1 px left out " << rms(sum_core)
+            << " px, and its sheen as the residual shows it " << rms(sum_sheen) << " px ("
+            << 100.0 * left_out / kTrials
+            << " % of the patch left out on average); core + 5 px and its sheen (the tracker's) "
+            << rms(sum_grown) << " px\n";
+  EXPECT_LT(rms(sum_grown), 0.02);
+  EXPECT_GT(rms(sum_all), 10.0 * rms(sum_grown));
+  EXPECT_LT(rms(sum_sheen), 0.6 * rms(sum_core));
+}
+
 TEST(ShiftRefiner, SimdKernelMatchesTheScalarReference) {
   const cv::Mat img = Texture(7).image([](const cv::Vec2d& p) { return p; });
   std::mt19937 rng(9);
   std::uniform_real_distribution<float> u(0.0F, 1.0F);
-  std::array<float, kShiftRows * kShiftCols> t{}, gx{}, gy{};
-  std::array<float, kShiftCols> mask{};
+  std::array<float, kShiftRows * kShiftCols> t{}, gx{}, gy{}, mask{};
   for (size_t k = 0; k < t.size(); ++k) {
     const bool pad = k % kShiftCols == kShiftCols - 1;
     t[k] = pad ? 0.0F : 255.0F * u(rng);
     gx[k] = pad ? 0.0F : 40.0F * (u(rng) - 0.5F);
     gy[k] = pad ? 0.0F : 40.0F * (u(rng) - 0.5F);
   }
-  for (int c = 0; c < kShiftCols; ++c) mask[static_cast<size_t>(c)] = c < kShiftRows ? 1.0F : 0.0F;
+  // The pad column and a few pixels (a glint's) left out.
+  for (size_t k = 0; k < mask.size(); ++k)
+    mask[k] = k % kShiftCols == kShiftCols - 1 || k % 37 == 5 ? 0.0F : 1.0F;
   for (int trial = 0; trial < 50; ++trial) {
     ShiftKernelInput in;
     in.image = img.ptr<uint8_t>(20 + trial) + 30 + 2 * trial;

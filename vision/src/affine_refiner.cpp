@@ -1,5 +1,6 @@
 #include "pulsetrack/vision/affine_refiner.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <opencv2/core.hpp>  // Matx::solve / inv (operations.hpp)
 
@@ -278,58 +279,102 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
 
 constexpr int kShiftBig = kShiftSide + 2;  // the template with a sample of margin
 
+// Every pixel of the patch takes part, the pad column none.
+constexpr std::array<float, kShiftPadded> kWholePatch = [] {
+  std::array<float, kShiftPadded> w{};
+  for (size_t k = 0; k < w.size(); ++k) w[k] = k % kShiftStride < kShiftSide ? 1.0F : 0.0F;
+  return w;
+}();
+
+double ShiftMask::leaveOutGlints(const uint8_t* image, size_t stride, int width, int height,
+                                 const cv::Vec2d& centre, int threshold, int grow_px) noexcept {
+  weight = kWholePatch;
+  count = kShiftPixels;
+  if (!(std::abs(centre[0]) < 1e6) || !(std::abs(centre[1]) < 1e6)) return 0.0;
+  const int x0 = static_cast<int>(std::lround(centre[0])) - kShiftHalf;  // the patch's corner
+  const int y0 = static_cast<int>(std::lround(centre[1])) - kShiftHalf;
+  const int g = std::max(0, grow_px);
+  for (int y = std::max(0, y0 - g); y < std::min(height, y0 + kShiftSide + g); ++y) {
+    const uint8_t* row = image + static_cast<size_t>(y) * stride;
+    for (int x = std::max(0, x0 - g); x < std::min(width, x0 + kShiftSide + g); ++x) {
+      if (row[x] < threshold) continue;
+      for (int py = std::max(0, y - y0 - g); py <= std::min(kShiftSide - 1, y - y0 + g); ++py) {
+        for (int px = std::max(0, x - x0 - g); px <= std::min(kShiftSide - 1, x - x0 + g); ++px) {
+          float& w = weight[static_cast<size_t>(py) * kShiftStride + static_cast<size_t>(px)];
+          count -= w != 0.0F ? 1 : 0;
+          w = 0.0F;
+        }
+      }
+    }
+  }
+  return 1.0 - static_cast<double>(count) / kShiftPixels;
+}
+
 bool ShiftTemplate::set(const uint8_t* image, size_t stride, int width, int height,
                         const cv::Vec2d& centre) noexcept {
   std::array<float, kShiftBig * kShiftBig> big{};
   if (!sampledPatch<kShiftBig>(image, stride, width, height, centre, big.data())) return false;
-  cv::Matx22d h = cv::Matx22d::zeros();
   t_.fill(0.0F);
   gx_.fill(0.0F);
   gy_.fill(0.0F);
-  sum_t_ = sum_tt_ = sum_gx_ = sum_gy_ = sum_gxt_ = sum_gyt_ = 0.0;
   for (int y = 0; y < kShiftSide; ++y) {
     for (int x = 0; x < kShiftSide; ++x) {
       const auto at = [&](int dx, int dy) {
         return big[static_cast<size_t>(y + 1 + dy) * kShiftBig + static_cast<size_t>(x + 1 + dx)];
       };
-      const size_t k = static_cast<size_t>(y) * kCols + static_cast<size_t>(x);
+      const size_t k = static_cast<size_t>(y) * kShiftStride + static_cast<size_t>(x);
       t_[k] = at(0, 0);
       gx_[k] = 0.5F * (at(1, 0) - at(-1, 0));
       gy_[k] = 0.5F * (at(0, 1) - at(0, -1));
-      h(0, 0) += double(gx_[k]) * gx_[k];
-      h(0, 1) += double(gx_[k]) * gy_[k];
-      h(1, 1) += double(gy_[k]) * gy_[k];
-      sum_t_ += t_[k];
-      sum_tt_ += double(t_[k]) * t_[k];
-      sum_gx_ += gx_[k];
-      sum_gy_ += gy_[k];
-      sum_gxt_ += double(gx_[k]) * t_[k];
-      sum_gyt_ += double(gy_[k]) * t_[k];
     }
   }
-  for (int c = 0; c < kCols; ++c) mask_[static_cast<size_t>(c)] = c < kShiftSide ? 1.0F : 0.0F;
+  all_ = moments(kWholePatch);
+  return all_.ok;
+}
+
+ShiftTemplate::Moments ShiftTemplate::moments(
+    const std::array<float, kShiftPadded>& weight) const noexcept {
+  Moments m;
+  cv::Matx22d h = cv::Matx22d::zeros();
+  for (size_t k = 0; k < weight.size(); ++k) {
+    if (weight[k] == 0.0F) continue;
+    const double t = t_[k], gx = gx_[k], gy = gy_[k];
+    h(0, 0) += gx * gx;
+    h(0, 1) += gx * gy;
+    h(1, 1) += gy * gy;
+    m.n += 1.0;
+    m.t += t;
+    m.tt += t * t;
+    m.gx += gx;
+    m.gy += gy;
+    m.gxt += gx * t;
+    m.gyt += gy * t;
+  }
+  if (m.n < 1.0) return m;
   h(1, 0) = h(0, 1);
-  mean_ = sum_t_ / kShiftPixels;
-  spread_ = std::sqrt(std::max(0.0, sum_tt_ / kShiftPixels - mean_ * mean_));
-  if (spread_ < 1.0) return false;
-  bool ok = false;
-  h_inv_ = h.inv(cv::DECOMP_CHOLESKY, &ok);
-  return ok;
+  m.mean = m.t / m.n;
+  m.spread = std::sqrt(std::max(0.0, m.tt / m.n - m.mean * m.mean));
+  if (m.spread < 1.0) return m;
+  m.h_inv = h.inv(cv::DECOMP_CHOLESKY, &m.ok);
+  return m;
 }
 
 AffineResult ShiftTemplate::refine(const uint8_t* image, size_t stride, int width, int height,
                                    const cv::Vec2d& start, int max_iterations, double epsilon_px,
-                                   bool scalar) const noexcept {
-  static_assert(kCols == kShiftCols && kShiftSide == kShiftRows);
+                                   bool scalar, const ShiftMask* mask) const noexcept {
+  static_assert(kShiftStride == kShiftCols && kShiftSide == kShiftRows);
   AffineResult res;
   res.warp.centre = start;
+  // Over the pixels that take part: all, or those the mask leaves in.
+  const Moments part = mask == nullptr ? all_ : moments(mask->weight);
+  if (!part.ok) return res;
   ShiftKernelInput in;
   in.stride = stride;
   in.t = t_.data();
   in.gx = gx_.data();
   in.gy = gy_.data();
-  in.mask = mask_.data();
-  constexpr double n = kShiftPixels;
+  in.mask = mask == nullptr ? kWholePatch.data() : mask->weight.data();
+  const double n = part.n;
   for (int it = 0; it < max_iterations; ++it) {
     res.iterations = it + 1;
     const cv::Vec2d& c = res.warp.centre;
@@ -337,7 +382,8 @@ AffineResult ShiftTemplate::refine(const uint8_t* image, size_t stride, int widt
     if (!(std::abs(fx0) < 1e6) || !(std::abs(fy0) < 1e6)) return res;
     const int x0 = static_cast<int>(fx0) - kShiftHalf - 1;  // first tap
     const int y0 = static_cast<int>(fy0) - kShiftHalf - 1;
-    if (x0 < 0 || y0 < 0 || x0 + kCols + 3 > width || y0 + kShiftSide + 3 > height) return res;
+    if (x0 < 0 || y0 < 0 || x0 + kShiftStride + 3 > width || y0 + kShiftSide + 3 > height)
+      return res;
     in.image = image + static_cast<size_t>(y0) * stride + static_cast<size_t>(x0);
     catmullRom(static_cast<float>(c[0] - fx0), in.wx);
     catmullRom(static_cast<float>(c[1] - fy0), in.wy);
@@ -351,15 +397,15 @@ AffineResult ShiftTemplate::refine(const uint8_t* image, size_t stride, int widt
     const double var = s.pp / n - mean * mean;
     if (!(var > 1e-6)) return res;
     // The patch normalized to the template's mean and spread: g p + o.
-    const double g = spread_ / std::sqrt(var);
-    const double o = mean_ - g * mean;
-    const double bx = g * s.gxp + o * sum_gx_ - sum_gxt_;
-    const double by = g * s.gyp + o * sum_gy_ - sum_gyt_;
+    const double g = part.spread / std::sqrt(var);
+    const double o = part.mean - g * mean;
+    const double bx = g * s.gxp + o * part.gx - part.gxt;
+    const double by = g * s.gyp + o * part.gy - part.gyt;
     const double sse = std::max(0.0, g * g * s.pp + 2.0 * g * o * s.p - 2.0 * g * s.tp + n * o * o -
-                                         2.0 * o * sum_t_ + sum_tt_);
+                                         2.0 * o * part.t + part.tt);
     res.rms = std::sqrt(sse / n);
-    res.ncc = 1.0 - sse / (2.0 * n * spread_ * spread_);
-    const cv::Vec2d dp = h_inv_ * cv::Vec2d(bx, by);
+    res.ncc = 1.0 - sse / (2.0 * n * part.spread * part.spread);
+    const cv::Vec2d dp = part.h_inv * cv::Vec2d(bx, by);
     res.warp.centre -= dp;  // inverse composition of a translation
     if (dp.dot(dp) < epsilon_px * epsilon_px) {
       res.converged = true;
@@ -367,6 +413,46 @@ AffineResult ShiftTemplate::refine(const uint8_t* image, size_t stride, int widt
     }
   }
   return res;
+}
+
+double ShiftTemplate::leaveOutSheen(const uint8_t* image, size_t stride, int width, int height,
+                                    const cv::Vec2d& centre, ShiftMask& mask,
+                                    double sigmas) const noexcept {
+  std::array<float, kShiftPixels> p;  // NOLINT(cppcoreguidelines-pro-type-member-init): written
+  if (!sampledPatch<kShiftSide>(image, stride, width, height, centre, p.data())) return 1.0;
+  const auto at = [](size_t k) {  // template index -> patch index (no pad)
+    return k / kShiftStride * kShiftSide + k % kShiftStride;
+  };
+  double n = 0.0, sp = 0.0, spp = 0.0;
+  for (size_t k = 0; k < mask.weight.size(); ++k) {
+    if (mask.weight[k] == 0.0F) continue;
+    const double v = p[at(k)];
+    n += 1.0;
+    sp += v;
+    spp += v * v;
+  }
+  const Moments m = moments(mask.weight);
+  const double mean = n > 0.0 ? sp / n : 0.0;
+  const double var = n > 0.0 ? spp / n - mean * mean : 0.0;
+  if (!m.ok || !(var > 1e-6)) return 1.0;
+  const double g = m.spread / std::sqrt(var), o = m.mean - g * mean;
+  std::array<float, kShiftPadded> e;      // NOLINT(cppcoreguidelines-pro-type-member-init): written
+  std::array<float, kShiftPixels> abs_e;  // NOLINT(cppcoreguidelines-pro-type-member-init)
+  size_t used = 0;
+  for (size_t k = 0; k < mask.weight.size(); ++k) {
+    if (mask.weight[k] == 0.0F) continue;
+    e[k] = static_cast<float>(g * p[at(k)] + o - t_[k]);
+    abs_e[used++] = std::abs(e[k]);
+  }
+  const auto mid = abs_e.begin() + static_cast<long>(used / 2);
+  std::nth_element(abs_e.begin(), mid, abs_e.begin() + static_cast<long>(used));
+  const double limit = sigmas * 1.4826 * *mid;
+  for (size_t k = 0; k < mask.weight.size(); ++k) {
+    if (mask.weight[k] == 0.0F || e[k] <= limit) continue;
+    mask.weight[k] = 0.0F;
+    --mask.count;
+  }
+  return 1.0 - static_cast<double>(mask.count) / kShiftPixels;
 }
 
 void shiftSumsScalar(const ShiftKernelInput& in, ShiftSums& out) noexcept {
@@ -384,7 +470,7 @@ void shiftSumsScalar(const ShiftKernelInput& in, ShiftSums& out) noexcept {
       const size_t k = static_cast<size_t>(r) * kShiftCols + static_cast<size_t>(c);
       const float p = (in.wy[0] * h[r][c] + in.wy[1] * h[r + 1][c] + in.wy[2] * h[r + 2][c] +
                        in.wy[3] * h[r + 3][c]) *
-                      in.mask[c];
+                      in.mask[k];
       out.p += p;
       out.pp += p * p;
       out.gxp += in.gx[k] * p;

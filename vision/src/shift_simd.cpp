@@ -46,7 +46,7 @@ void ShiftSumsImpl(const ShiftKernelInput& in, ShiftSums& out) {
       p = hn::MulAdd(wy1, hn::Load(df, h[r + 1] + c), p);
       p = hn::MulAdd(wy2, hn::Load(df, h[r + 2] + c), p);
       p = hn::MulAdd(wy3, hn::Load(df, h[r + 3] + c), p);
-      p = hn::Mul(p, hn::LoadU(df, in.mask + c));  // the pad column counts for nothing
+      p = hn::Mul(p, hn::LoadU(df, in.mask + k0 + c));  // the pad (a glint) counts for nothing
       sp = hn::Add(sp, p);
       spp = hn::MulAdd(p, p, spp);
       sgx = hn::MulAdd(hn::LoadU(df, in.gx + k0 + c), p, sgx);

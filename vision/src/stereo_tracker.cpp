@@ -1120,14 +1120,14 @@ bool StereoTracker::searchCamera(const cv::Mat& img, const NccTemplate& t, const
 }
 
 Gate StereoTracker::locate(const cv::Mat& img, const NccTemplate& t, const ShiftTemplate& shift,
-                           const cv::Vec2d& last, cv::Vec2d& pos, double& ncc,
-                           int radius) noexcept {
+                           const cv::Vec2d& last, cv::Vec2d& pos, double& ncc, int radius,
+                           const ShiftMask* mask) noexcept {
   if (config_.refinement) {
     // Frame-to-frame motion is mostly under a pixel, inside the translation refinement's basin:
     // refine straight from the last position, and search with NCC only when that fails (a
     // jump, a re-acquisition after an occlusion, a poor match).
-    const AffineResult ar =
-        shift.refine(img.data, img.step, img.cols, img.rows, last, gates_.video_refine_iterations);
+    const AffineResult ar = shift.refine(img.data, img.step, img.cols, img.rows, last,
+                                         gates_.video_refine_iterations, 2e-3, false, mask);
     if (ar.converged && ar.ncc >= config_.min_ncc && cv::norm(ar.warp.centre - last) <= radius) {
       pos = ar.warp.centre;
       ncc = ar.ncc;
@@ -1136,8 +1136,8 @@ Gate StereoTracker::locate(const cv::Mat& img, const NccTemplate& t, const Shift
   }
   if (!searchCamera(img, t, last, pos, ncc, radius)) return Gate::kNoPeak;
   if (config_.refinement) {
-    const AffineResult ar =
-        shift.refine(img.data, img.step, img.cols, img.rows, pos, gates_.video_refine_iterations);
+    const AffineResult ar = shift.refine(img.data, img.step, img.cols, img.rows, pos,
+                                         gates_.video_refine_iterations, 2e-3, false, mask);
     // Not converged: an NCC-peak or loosely converged fallback kept more of the Hamlyn heart
     // but cost cortex-hard 0.0363 -> 0.0383 / 0.0372 mm of 3D RMS (gate_eval).
     if (!ar.converged || cv::norm(ar.warp.centre - pos) > 1.5) return Gate::kNotConverged;
@@ -1146,12 +1146,31 @@ Gate StereoTracker::locate(const cv::Mat& img, const NccTemplate& t, const Shift
   return Gate::kNone;
 }
 
+bool StereoTracker::glintOver(const cv::Mat& img, const cv::Vec2d& at, const State& s,
+                              int cam) const noexcept {
+  const int mx = neighbourhoodMax(img, at, config_.specular_margin_px);
+  if (mx < config_.specular_threshold) return false;
+  // A saturation the gain change explains is not a glint (glint_excess).
+  const auto c = static_cast<size_t>(cam);
+  const double mean = regionMean(img, at, kHalf + config_.specular_margin_px);
+  const double scaled = s.mean0[c] > 0.0 ? s.max0[c] * mean / s.mean0[c] : 0.0;
+  return mx > std::min(255.0, scaled) + config_.glint_excess;
+}
+
 Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, State& s, double& ncc,
                                 double& nmi, int radius) noexcept {
   const cv::Vec2d last = at;
   cv::Vec2d pos = last;
   const auto c = static_cast<size_t>(cam);
-  Gate found = locate(img, s.ncc[cam], s.shift[cam], last, pos, ncc, radius);
+  // A glint (they move as the surface breathes) over part of the patch where the feature is
+  // expected: its pixels are left out of the match.
+  const bool masking =
+      config_.max_glint_fraction > 0.0 && config_.refinement && glintOver(img, last, s, cam) &&
+      glint_mask_.leaveOutGlints(img.data, img.step, img.cols, img.rows, last,
+                                 config_.specular_threshold,
+                                 config_.glint_grow_px) <= config_.max_glint_fraction;
+  const ShiftMask* mask = masking ? &glint_mask_ : nullptr;
+  Gate found = locate(img, s.ncc[cam], s.shift[cam], last, pos, ncc, radius, mask);
   s.anchored[c] = found == Gate::kNone && ncc >= config_.min_ncc;
   // Where the frame-0 template finds nothing (tissue that deforms: a beating heart), its look
   // in a recent pair where the frame-0 template did find it (refreshTemplates()). One hop from
@@ -1159,7 +1178,8 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
   if (!s.anchored[c] && s.recent) {
     cv::Vec2d p2 = last;
     double n2 = 0.0;
-    if (locate(img, s.recent_ncc[c], s.recent_shift[c], last, p2, n2, radius) == Gate::kNone &&
+    if (locate(img, s.recent_ncc[c], s.recent_shift[c], last, p2, n2, radius, mask) ==
+            Gate::kNone &&
         n2 >= config_.min_ncc) {
       pos = config_.refinement ? p2 : p2 + s.recent_offset[c];
       ncc = n2;
@@ -1172,14 +1192,29 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
   // NMI between the frame-0 template and the patch at the match.
   nmi = s.nmi[cam].score(patch, img.step);
   at = pos;
-  // A glint over the feature (they move as the surface breathes) gates this frame; a
-  // saturation the gain change explains does not (glint_excess).
-  const int mx = neighbourhoodMax(img, pos, config_.specular_margin_px);
-  if (mx >= config_.specular_threshold) {
-    const double mean = regionMean(img, pos, kHalf + config_.specular_margin_px);
-    const double scaled = s.mean0[cam] > 0.0 ? s.max0[cam] * mean / s.mean0[cam] : 0.0;
-    if (mx > std::min(255.0, scaled) + config_.glint_excess) return Gate::kGlint;
+  // A glint over the feature gates this pair, unless the match could leave it out (masking).
+  if (!glintOver(img, pos, s, cam)) return Gate::kNone;
+  if (mask == nullptr) return Gate::kGlint;
+  // Refined again where it was found, the glint left out there (a search may have moved it)
+  // and the sheen around it too (no fixed size: the pixels brighter than the template), with
+  // at most max_glint_fraction of the patch left out and within a pixel of that match.
+  if (cv::norm(pos - last) > 1.0 &&
+      glint_mask_.leaveOutGlints(img.data, img.step, img.cols, img.rows, pos,
+                                 config_.specular_threshold,
+                                 config_.glint_grow_px) > config_.max_glint_fraction) {
+    return Gate::kGlint;
   }
+  const ShiftTemplate& t = s.anchored[c] ? s.shift[cam] : s.recent_shift[c];
+  if (t.leaveOutSheen(img.data, img.step, img.cols, img.rows, pos, glint_mask_,
+                      config_.glint_sheen_sigmas) > config_.max_glint_fraction) {
+    return Gate::kGlint;
+  }
+  const AffineResult ar = t.refine(img.data, img.step, img.cols, img.rows, pos,
+                                   gates_.video_refine_iterations, 2e-3, false, &glint_mask_);
+  if (!ar.converged || ar.ncc < config_.min_ncc || cv::norm(ar.warp.centre - pos) > 1.0)
+    return Gate::kGlint;
+  pos = at = ar.warp.centre;
+  ncc = ar.ncc;
   return Gate::kNone;
 }
 
@@ -1209,38 +1244,38 @@ int StereoTracker::nearestOk(size_t i, size_t among, NeighbourList& idx) const n
 
 bool StereoTracker::predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, size_t among,
                             double& spread_px) const noexcept {
-  constexpr int kMax = kMaxNeighbours;
   NeighbourList idx{};
   const int n = nearestOk(i, among, idx);
   const cv::Vec2d at = states_[i].epoch_left;
   if (n == 0) return false;
   // The neighbours' motions since the epoch as an affine function of where they were then
   // (neighbour_motion.hpp: a sag's bowl and a turn are not blamed on the feature); their mean
-  // where they surround it too thinly.
-  std::array<cv::Vec2d, kMax> pos{}, ml{}, mr{};
+  // where they surround it too thinly. Both views' motions in one fit (left x, y, right x, y):
+  // one decision for both cameras.
+  std::array<cv::Vec2d, kMaxNeighbours> pos{};
+  std::array<cv::Vec4d, kMaxNeighbours> motion{};
   for (int m = 0; m < n; ++m) {
     const auto q = static_cast<size_t>(m);
     const size_t j = idx[q];
     pos[q] = states_[j].epoch_left;
-    ml[q] = features_[j].left - states_[j].epoch_left;
-    mr[q] = states_[j].right_track - states_[j].epoch_right;
+    const cv::Vec2d ml = features_[j].left - states_[j].epoch_left;
+    const cv::Vec2d mr = states_[j].right_track - states_[j].epoch_right;
+    motion[q] = {ml[0], ml[1], mr[0], mr[1]};
   }
-  const auto fit_l = fitNeighbourMotion(pos.data(), ml.data(), n, at, config_.affine_prediction);
-  const auto fit_r = fitNeighbourMotion(pos.data(), mr.data(), n, at, config_.affine_prediction);
+  const auto fit = fitNeighbourMotion(pos.data(), motion.data(), n, at, config_.affine_prediction);
   // How differently the neighbours moved (RMS about that model, both cameras' worse): near
   // zero on a surface that moves as one, pixels on a beating heart.
   double var_l = 0.0, var_r = 0.0;
   for (int m = 0; m < n; ++m) {
     const auto q = static_cast<size_t>(m);
-    const cv::Vec2d el = ml[q] - fit_l.at(pos[q]);
-    const cv::Vec2d er = mr[q] - fit_r.at(pos[q]);
-    var_l += el.dot(el);
-    var_r += er.dot(er);
+    const cv::Vec4d e = motion[q] - fit.at(pos[q]);
+    var_l += e[0] * e[0] + e[1] * e[1];
+    var_r += e[2] * e[2] + e[3] * e[3];
   }
-  const cv::Vec2d dl = fit_l.at(at), dr = fit_r.at(at);
+  const cv::Vec4d d = fit.at(at);
   spread_px = std::sqrt(std::max(var_l, var_r) / n);
-  left = states_[i].epoch_left + dl;
-  right_track = states_[i].epoch_right + dr;
+  left = states_[i].epoch_left + cv::Vec2d(d[0], d[1]);
+  right_track = states_[i].epoch_right + cv::Vec2d(d[2], d[3]);
   return true;
 }
 

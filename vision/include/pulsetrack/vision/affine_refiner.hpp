@@ -11,6 +11,7 @@
 // 0.016-0.020 mm with an affine refinement).
 
 #include <array>
+#include <cstddef>
 #include <cstdint>
 #include <opencv2/core/matx.hpp>
 
@@ -26,6 +27,24 @@ inline constexpr int kAffinePixels = kAffineSide * kAffineSide;
 inline constexpr int kShiftHalf = 11;
 inline constexpr int kShiftSide = 2 * kShiftHalf + 1;
 inline constexpr int kShiftPixels = kShiftSide * kShiftSide;
+inline constexpr int kShiftStride = 24;  // a row of the translation template, padded to 24 floats
+inline constexpr int kShiftPadded = kShiftSide * kShiftStride;
+
+// Which of the translation template's pixels take part in a match (1) and which are left out
+// (0): those a glint covers in the image being matched. A glint is the light's reflection, not
+// the tissue's: it stays where the view makes it while the tissue moves under it, and its
+// pixels pull the match (or fail it) if they count.
+struct ShiftMask {
+  std::array<float, kShiftPadded> weight{};  // row-major, kShiftStride per row, pad column 0
+  int count = 0;                             // pixels taking part
+
+  // Leaves out every pixel of the patch centred on `centre` (nearest pixel) within `grow_px`
+  // (Chebyshev distance) of an image pixel at or above `threshold`: a glint's saturated core
+  // and the sheen around it. Returns the fraction left out (pixels outside the image are not
+  // glints).
+  double leaveOutGlints(const uint8_t* image, size_t stride, int width, int height,
+                        const cv::Vec2d& centre, int threshold, int grow_px) noexcept;
+};
 
 // Warp: x' = centre + A x, x in template coordinates [-7, 7]^2, A = [a00 a01; a10 a11].
 struct AffineWarp {
@@ -85,19 +104,34 @@ class ShiftTemplate {
 
   // Refines `start`; stops when the update is below `epsilon_px`. `warp.a` stays identity.
   // Each iteration is one pass of a Highway kernel (shift_kernel.hpp); `scalar` runs the
-  // reference kernel instead (tests).
+  // reference kernel instead (tests). With `mask`, only its pixels take part (weighted inverse
+  // compositional: the template's sums and Hessian over them, once per call); unconverged when
+  // what is left is flat or its gradients do not fix both directions.
   [[nodiscard]] AffineResult refine(const uint8_t* image, size_t stride, int width, int height,
                                     const cv::Vec2d& start, int max_iterations = 10,
-                                    double epsilon_px = 2e-3, bool scalar = false) const noexcept;
+                                    double epsilon_px = 2e-3, bool scalar = false,
+                                    const ShiftMask* mask = nullptr) const noexcept;
+
+  // Leaves out, besides what `mask` already does, the pixels of the patch at `centre` that are
+  // brighter than the template (normalized to it over the pixels taking part) by more than
+  // `sigmas` robust standard deviations of the residual (1.4826 x its median absolute value):
+  // the sheen a glint spreads around its saturated core, which has no fixed size. Returns the
+  // fraction of the patch left out (1 where the patch leaves the image or what is left is flat).
+  double leaveOutSheen(const uint8_t* image, size_t stride, int width, int height,
+                       const cv::Vec2d& centre, ShiftMask& mask, double sigmas) const noexcept;
 
  private:
-  static constexpr int kCols = 24;  // rows padded to 24 floats, the pad weighs nothing
-  static constexpr int kPadded = kShiftSide * kCols;
-  std::array<float, kPadded> t_{}, gx_{}, gy_{};
-  std::array<float, kCols> mask_{};
-  cv::Matx22d h_inv_;
-  double mean_ = 0.0, spread_ = 0.0;
-  double sum_t_ = 0.0, sum_tt_ = 0.0, sum_gx_ = 0.0, sum_gy_ = 0.0, sum_gxt_ = 0.0, sum_gyt_ = 0.0;
+  // The template's sums over the pixels that take part, and its Gauss-Newton Hessian's inverse.
+  struct Moments {
+    double n = 0.0, t = 0.0, tt = 0.0, gx = 0.0, gy = 0.0, gxt = 0.0, gyt = 0.0;
+    double mean = 0.0, spread = 0.0;
+    cv::Matx22d h_inv;
+    bool ok = false;
+  };
+  [[nodiscard]] Moments moments(const std::array<float, kShiftPadded>& weight) const noexcept;
+
+  std::array<float, kShiftPadded> t_{}, gx_{}, gy_{};
+  Moments all_;
 };
 
 // Bicubic (Catmull-Rom) sample; false outside [1, w-2) x [1, h-2).

@@ -9,8 +9,8 @@
 
 namespace pulsetrack::vision {
 
-inline constexpr int kShiftRows = kShiftSide;  // 23 rows of the patch
-inline constexpr int kShiftCols = 24;          // 23 columns padded to 24 (the pad weighs 0)
+inline constexpr int kShiftRows = kShiftSide;    // 23 rows of the patch
+inline constexpr int kShiftCols = kShiftStride;  // 23 columns padded to 24 (the pad weighs 0)
 
 struct ShiftKernelInput {
   const uint8_t* image = nullptr;  // the first tap: (kShiftRows + 3) rows, kShiftCols + 3 columns
@@ -19,10 +19,11 @@ struct ShiftKernelInput {
   const float* t = nullptr;      // template, gradients: kShiftRows x kShiftCols, pad column 0
   const float* gx = nullptr;
   const float* gy = nullptr;
-  const float* mask = nullptr;  // kShiftCols: 1 for the patch's columns, 0 for the pad
+  // kShiftRows x kShiftCols: 1 for the pixels that take part, 0 for the pad (and a glint's)
+  const float* mask = nullptr;
 };
 
-// Sums over the resampled patch p: p, p^2, gx p, gy p, t p.
+// Sums over the resampled patch p times the mask m (0 or 1): m p, m p^2, m gx p, m gy p, m t p.
 struct ShiftSums {
   float p = 0, pp = 0, gxp = 0, gyp = 0, tp = 0;
 };
