@@ -446,7 +446,7 @@ double ShiftTemplate::leaveOutSheen(const uint8_t* image, size_t stride, int wid
   }
   const auto mid = abs_e.begin() + static_cast<long>(used / 2);
   std::nth_element(abs_e.begin(), mid, abs_e.begin() + static_cast<long>(used));
-  const double limit = sigmas * 1.4826 * *mid;
+  const double limit = std::max(1.0, sigmas * 1.4826 * *mid);  // a grey level at least
   for (size_t k = 0; k < mask.weight.size(); ++k) {
     if (mask.weight[k] == 0.0F || e[k] <= limit) continue;
     mask.weight[k] = 0.0F;

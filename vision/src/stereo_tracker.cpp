@@ -1171,6 +1171,7 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
                                  config_.glint_grow_px) <= config_.max_glint_fraction;
   const ShiftMask* mask = masking ? &glint_mask_ : nullptr;
   Gate found = locate(img, s.ncc[cam], s.shift[cam], last, pos, ncc, radius, mask);
+  const ShiftTemplate* matched = &s.shift[cam];  // the template pair that found it
   s.anchored[c] = found == Gate::kNone && ncc >= config_.min_ncc;
   // Where the frame-0 template finds nothing (tissue that deforms: a beating heart), its look
   // in a recent pair where the frame-0 template did find it (refreshTemplates()). One hop from
@@ -1184,6 +1185,7 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
       pos = config_.refinement ? p2 : p2 + s.recent_offset[c];
       ncc = n2;
       found = Gate::kNone;
+      matched = &s.recent_shift[c];
     }
   }
   if (found != Gate::kNone) return found;
@@ -1204,7 +1206,7 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
                                  config_.glint_grow_px) > config_.max_glint_fraction) {
     return Gate::kGlint;
   }
-  const ShiftTemplate& t = s.anchored[c] ? s.shift[cam] : s.recent_shift[c];
+  const ShiftTemplate& t = *matched;
   if (t.leaveOutSheen(img.data, img.step, img.cols, img.rows, pos, glint_mask_,
                       config_.glint_sheen_sigmas) > config_.max_glint_fraction) {
     return Gate::kGlint;
@@ -1213,7 +1215,7 @@ Gate StereoTracker::trackCamera(int cam, const cv::Mat& img, cv::Vec2d& at, Stat
                                    gates_.video_refine_iterations, 2e-3, false, &glint_mask_);
   if (!ar.converged || ar.ncc < config_.min_ncc || cv::norm(ar.warp.centre - pos) > 1.0)
     return Gate::kGlint;
-  pos = at = ar.warp.centre;
+  at = ar.warp.centre;
   ncc = ar.ncc;
   return Gate::kNone;
 }
@@ -1250,8 +1252,8 @@ bool StereoTracker::predict(size_t i, cv::Vec2d& left, cv::Vec2d& right_track, s
   if (n == 0) return false;
   // The neighbours' motions since the epoch as an affine function of where they were then
   // (neighbour_motion.hpp: a sag's bowl and a turn are not blamed on the feature); their mean
-  // where they surround it too thinly. Both views' motions in one fit (left x, y, right x, y):
-  // one decision for both cameras.
+  // where they surround it too thinly. Both views' motions in one call (left x, y, right x, y;
+  // the fit's choices depend on the positions alone).
   std::array<cv::Vec2d, kMaxNeighbours> pos{};
   std::array<cv::Vec4d, kMaxNeighbours> motion{};
   for (int m = 0; m < n; ++m) {
@@ -1428,6 +1430,8 @@ void StereoTracker::refreshTemplates(const cv::Mat& left, const cv::Mat& right) 
     template_next_ = (i + 1) % n;
     State& s = states_[i];
     if (features_[i].status != FeatureStatus::kOk || !s.anchored[0] || !s.anchored[1]) continue;
+    // Not from a view with a glint on it (its match left the glint out; a template would not).
+    if (glintOver(left, features_[i].left, s, 0) || glintOver(right, s.right_track, s, 1)) continue;
     bool ok = true;
     for (size_t c = 0; c < 2 && ok; ++c) {
       const cv::Mat& img = c == 0 ? left : right;

@@ -35,8 +35,9 @@ inline constexpr int kShiftPadded = kShiftSide * kShiftStride;
 // the tissue's: it stays where the view makes it while the tissue moves under it, and its
 // pixels pull the match (or fail it) if they count.
 struct ShiftMask {
-  std::array<float, kShiftPadded> weight{};  // row-major, kShiftStride per row, pad column 0
-  int count = 0;                             // pixels taking part
+  // 0 or 1 (nothing between), row-major, kShiftStride per row, the pad column always 0
+  std::array<float, kShiftPadded> weight{};
+  int count = 0;  // pixels taking part
 
   // Leaves out every pixel of the patch centred on `centre` (nearest pixel) within `grow_px`
   // (Chebyshev distance) of an image pixel at or above `threshold`: a glint's saturated core
@@ -106,7 +107,7 @@ class ShiftTemplate {
   // Each iteration is one pass of a Highway kernel (shift_kernel.hpp); `scalar` runs the
   // reference kernel instead (tests). With `mask`, only its pixels take part (weighted inverse
   // compositional: the template's sums and Hessian over them, once per call); unconverged when
-  // what is left is flat or its gradients do not fix both directions.
+  // what is left is flat or its Hessian is singular.
   [[nodiscard]] AffineResult refine(const uint8_t* image, size_t stride, int width, int height,
                                     const cv::Vec2d& start, int max_iterations = 10,
                                     double epsilon_px = 2e-3, bool scalar = false,
