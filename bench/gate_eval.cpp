@@ -70,6 +70,8 @@ int main(int argc, char** argv) try {
   sweep("--min-nmi", config.min_nmi, "NMI gate");
   sweep("--template-refresh", config.template_refresh,
         "Recent templates taken per pair (0: the frame-0 templates only)");
+  sweep("--min-stereo-confirmed", config.min_stereo_confirmed,
+        "Stereo confirmation: the share of a feature's refresh matches that must pass (0: off)");
   sweep("--stereo-translation-fallback", config.stereo_translation_fallback,
         "Unsettled affine stereo matches refined in translation where the ceiling is not filled "
         "(true/false)");

@@ -514,6 +514,12 @@ int runTrack(const TrackArgs& a) {
   if (session.rangeSerial() > 0)
     fmt::print("stereo search     {}\n", session.stereoRange().summary());
   if (initial >= 0) fmt::print("gates             {}\n", session.tracker().fittedGates().summary());
+  if (const int n_unconfirmed = session.tracker().unconfirmedCount(); n_unconfirmed > 0) {
+    fmt::print(
+        "stereo check      {} feature(s) retired: their stereo match in the next pairs failed the "
+        "stereo NCC gate that the first pair's passed (sheen in one view, a borderline match)\n",
+        n_unconfirmed);
+  }
   if (initial >= 0 && session.scale() != 1.0)
     fmt::print("scale             {}\n", session.scaleSummary());
   if (field_out) {

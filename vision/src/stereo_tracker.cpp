@@ -552,11 +552,12 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
   if (!fill) {
     features_.clear();
     states_.clear();
+    unconfirmed_count_ = 0;
   } else {
     // Retire the features hidden for too long: their region is filled below.
     size_t kept = 0;
     for (size_t i = 0; i < features_.size(); ++i) {
-      if (states_[i].not_ok_pairs > config_.retire_after_pairs) continue;
+      if (states_[i].not_ok_pairs > config_.retire_after_pairs || states_[i].unconfirmed) continue;
       features_[kept] = features_[i];
       states_[kept] = states_[i];
       ++kept;
@@ -883,6 +884,21 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
       ratios.push_back(use && ml > 0.0 && mr > 0.0 ? mr / ml : 0.0);
       offsets.push_back(rig_.epipolarOffset(f.left, f.right));
     }
+    // The two cameras' gain ratio now against the first detection's (their gains drift apart):
+    // the kept features' median. A new feature's view_gain is kept in the first detection's
+    // terms, as the kept ones' are, so that the stereo refresh's sheen gate (which divides by
+    // this pair's drift from them) judges every feature alike.
+    std::vector<double> drifts;
+    for (size_t i = 0; i < first_new; ++i) {
+      if (ratios[i] > 0.0 && states_[i].view_gain > 0.0)
+        drifts.push_back(ratios[i] / states_[i].view_gain);
+    }
+    double drift = 1.0;
+    if (!drifts.empty()) {
+      std::nth_element(drifts.begin(), drifts.begin() + static_cast<long>(drifts.size() / 2),
+                       drifts.end());
+      drift = drifts[drifts.size() / 2];
+    }
     std::vector<std::pair<double, size_t>> near;  // (distance, feature)
     std::vector<double> local, local_offsets;
     std::vector<double> spread(features_.size(), 0.0);
@@ -950,6 +966,7 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
     features_.resize(kept);
     states_.resize(kept);
     candidate_of_feature.resize(kept);
+    for (size_t i = from; i < kept; ++i) states_[i].view_gain /= drift;
   };
   // The stereo NCC gate, fitted to the first round's matches (those with a peak that the
   // refinement settled: the strongest corners over the whole ROI, the images' kind) where the
@@ -1285,6 +1302,13 @@ void StereoTracker::trackOne(size_t i, const cv::Mat& left, const cv::Mat& right
                              bool reacquiring) noexcept {
   Feature& f = features_[i];
   State& s = states_[i];
+  if (s.unconfirmed) {
+    f.status = FeatureStatus::kOutlierEpipolar;
+    f.gate = Gate::kStereoNcc;
+    f.failed = gateBit(Gate::kStereoNcc);
+    s.velocity = {};
+    return;
+  }
   const cv::Vec2d prev_left = f.left, prev_right = f.right, prev_track = s.right_track;
   f.left += s.velocity[0];
   s.right_track += s.velocity[1];
@@ -1417,7 +1441,7 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
   for (size_t i = 0; i < features_.size(); ++i) {
     State& s = states_[i];
     s.not_ok_pairs = features_[i].status == FeatureStatus::kOk ? 0 : s.not_ok_pairs + 1;
-    if (s.not_ok_pairs > config_.retire_after_pairs) ++retirable_;
+    if (s.not_ok_pairs > config_.retire_after_pairs || s.unconfirmed) ++retirable_;
   }
   tracked_ = true;
 }
@@ -1514,18 +1538,26 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
                               job.ramp)) {
       ar = out.affine.refine(r.data, r.step, r.cols, r.rows, {at_r, it.warp}, 20, 0.01);
     }
-    // Gated as the first match was; a match far from the corrected track, sheen or a glint in
-    // either view is not averaged in.
-    if (!ar.converged || cv::norm(ar.warp.centre - at_r) > 0.5 || ar.ncc < job.min_ncc) continue;
-    const double mr = regionMean(r, ar.warp.centre, half);
-    if (std::abs(mr / out.left_mean[j] / it.view_gain / drift - 1.0) > job.max_sheen ||
-        neighbourhoodMax(r, ar.warp.centre, job.specular_margin_px) >= job.specular_threshold ||
-        neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold) {
-      continue;
-    }
-    RefreshOutcome::Match& match = out.matches[out.count++];
+    // Gated as the first match was; a match far from the corrected track or in sheen is not
+    // averaged in, and counts against the feature's first match (applyRefresh()); with a glint
+    // in either view the views are not compared at all.
+    RefreshOutcome::Match& match = out.matches[out.count];
     match.index = it.index;
     match.id = it.id;
+    match.passed = false;
+    match.ncc_ok = ar.ncc >= job.min_ncc;
+    if (ar.converged && cv::norm(ar.warp.centre - at_r) <= 0.5 && ar.ncc >= job.min_ncc) {
+      if (neighbourhoodMax(r, ar.warp.centre, job.specular_margin_px) >= job.specular_threshold ||
+          neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold) {
+        continue;
+      }
+      const double mr = regionMean(r, ar.warp.centre, half);
+      match.passed = std::abs(mr / out.left_mean[j] / it.view_gain / drift - 1.0) <= job.max_sheen;
+    } else if (neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold ||
+               neighbourhoodMax(r, at_r, job.specular_margin_px) >= job.specular_threshold) {
+      continue;
+    }
+    ++out.count;
     match.right_track = it.right_track;
     match.centre = ar.warp.centre + o_r;
     match.warp = job.dark_blobs ? it.warp : ar.warp.a;
@@ -1542,7 +1574,7 @@ void StereoTracker::prepareRefresh(const cv::Mat& left, const cv::Mat& right,
       left.size() != right.size() || job.side <= 0) {
     return;
   }
-  job.min_ncc = std::max(config_.min_ncc, config_.min_stereo_ncc);
+  job.min_ncc = std::max(config_.min_ncc, gates_.min_stereo_ncc);
   job.max_sheen = gates_.max_sheen;
   job.specular_margin_px = config_.specular_margin_px;
   job.specular_threshold = config_.specular_threshold;
@@ -1599,6 +1631,18 @@ int StereoTracker::applyRefresh(const RefreshOutcome& outcome) noexcept {
     if (m.index >= features_.size() || features_[m.index].id != m.id) continue;
     Feature& f = features_[m.index];
     State& s = states_[m.index];
+    // The stereo confirmation: its first stereo_confirm_tries refresh matches, whose views are
+    // the first pair's but for the noise, judged once.
+    if (s.confirm_tries < config_.stereo_confirm_tries) {
+      ++s.confirm_tries;
+      s.confirmed += m.ncc_ok ? 1 : 0;
+      if (s.confirm_tries == config_.stereo_confirm_tries &&
+          s.confirmed < config_.min_stereo_confirmed * s.confirm_tries) {
+        s.unconfirmed = true;  // hidden from the next pair on, retired at the next detection
+        ++unconfirmed_count_;
+      }
+    }
+    if (!m.passed) continue;
     s.stereo_samples = std::min(s.stereo_samples + 1, window);
     s.stereo_offset += (m.centre - m.right_track - s.stereo_offset) / s.stereo_samples;
     s.stereo_warp = m.warp;
