@@ -252,6 +252,8 @@ vision::Result<DaemonConfig> parseDaemonConfig(const std::string& text,
         s.integer("stereo_refresh", c.tracker.stereo_refresh, 0, c.tracker.max_features);
     c.tracker.template_refresh =
         s.integer("template_refresh", c.tracker.template_refresh, 0, c.tracker.max_features);
+    c.tracker.min_stereo_confirmed =
+        s.number("min_stereo_confirmed", c.tracker.min_stereo_confirmed, 0.0, 1.0);
     const std::string scale = s.string("scale", "auto", {"auto", "1", "0.5"});
     c.tracker_scale = scale == "1" ? 1.0 : scale == "0.5" ? 0.5 : 0.0;
     s.finish();

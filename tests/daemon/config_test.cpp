@@ -31,6 +31,7 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_DOUBLE_EQ(c->fps, 30.0);
   EXPECT_EQ(c->tracker.stereo_refresh, 25);
   EXPECT_EQ(c->tracker.template_refresh, 25);
+  EXPECT_DOUBLE_EQ(c->tracker.min_stereo_confirmed, 0.25);
   EXPECT_EQ(c->tracker_scale, 0.0);  // auto
   EXPECT_EQ(c->sim_faults.missing_trigger_every + c->sim_faults.left_drop_every +
                 c->sim_faults.right_miss_every,
@@ -206,6 +207,8 @@ TEST(DaemonConfig, BadInputNamesFileLineAndKey) {
   expectError("[tracker]\nmax_features = 50\ntemplate_refresh = 51\n",
               "pulsetrackd.toml:3: tracker.template_refresh");
   expectError("[tracker]\nscale = \"0.7\"\n", "pulsetrackd.toml:2: tracker.scale");
+  expectError("[tracker]\nmin_stereo_confirmed = 1.5\n",
+              "pulsetrackd.toml:2: tracker.min_stereo_confirmed");
   expectError("[source.faults]\nright_drop_every = 3\n",
               "unknown key 'source.faults.right_drop_every'");
   expectError(

@@ -549,15 +549,21 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
             .stereo_ncc_fitted = stereo_ncc < config_.min_stereo_ncc};
   setTrackingGates();
 
+  std::vector<cv::Vec2d> unconfirmed_at;  // the unconfirmed features retired here
   if (!fill) {
     features_.clear();
     states_.clear();
-    unconfirmed_count_ = 0;
   } else {
-    // Retire the features hidden for too long: their region is filled below.
+    // Retire the features hidden for too long and the unconfirmed ones: their region is filled
+    // below (not with an unconfirmed one's own corner again: a template's half around it).
     size_t kept = 0;
     for (size_t i = 0; i < features_.size(); ++i) {
-      if (states_[i].not_ok_pairs > config_.retire_after_pairs || states_[i].unconfirmed) continue;
+      if (states_[i].unconfirmed) {
+        unconfirmed_at.push_back(features_[i].left);
+        ++unconfirmed_count_;
+        continue;
+      }
+      if (states_[i].not_ok_pairs > config_.retire_after_pairs) continue;
       features_[kept] = features_[i];
       states_[kept] = states_[i];
       ++kept;
@@ -586,7 +592,10 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
         const cv::Vec2d d = f.left - at;
         return d.dot(d) < d2;
       });
-      if (taken) continue;
+      const bool unconfirmed =
+          std::any_of(unconfirmed_at.begin(), unconfirmed_at.end(),
+                      [&](const cv::Vec2d& u) { return cv::norm(u - at) <= kHalf; });
+      if (taken || unconfirmed) continue;
       if (k < spaced) ++kept_spaced;
       chosen[kept++] = chosen[k];
     }
@@ -1441,7 +1450,12 @@ void StereoTracker::track(const cv::Mat& left, const cv::Mat& right) noexcept {
   for (size_t i = 0; i < features_.size(); ++i) {
     State& s = states_[i];
     s.not_ok_pairs = features_[i].status == FeatureStatus::kOk ? 0 : s.not_ok_pairs + 1;
-    if (s.not_ok_pairs > config_.retire_after_pairs || s.unconfirmed) ++retirable_;
+    // An unconfirmed feature asks for its re-detection after as many pairs as its confirmation
+    // took (those unconfirmed meanwhile go in the same one); any earlier one retires it too.
+    if (s.not_ok_pairs > config_.retire_after_pairs ||
+        (s.unconfirmed && s.not_ok_pairs > config_.stereo_confirm_tries)) {
+      ++retirable_;
+    }
   }
   tracked_ = true;
 }
@@ -1538,26 +1552,26 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
                               job.ramp)) {
       ar = out.affine.refine(r.data, r.step, r.cols, r.rows, {at_r, it.warp}, 20, 0.01);
     }
-    // Gated as the first match was; a match far from the corrected track or in sheen is not
-    // averaged in, and counts against the feature's first match (applyRefresh()); with a glint
-    // in either view the views are not compared at all.
-    RefreshOutcome::Match& match = out.matches[out.count];
-    match.index = it.index;
-    match.id = it.id;
-    match.passed = false;
-    match.ncc_ok = ar.ncc >= job.min_ncc;
-    if (ar.converged && cv::norm(ar.warp.centre - at_r) <= 0.5 && ar.ncc >= job.min_ncc) {
-      if (neighbourhoodMax(r, ar.warp.centre, job.specular_margin_px) >= job.specular_threshold ||
-          neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold) {
-        continue;
-      }
-      const double mr = regionMean(r, ar.warp.centre, half);
-      match.passed = std::abs(mr / out.left_mean[j] / it.view_gain / drift - 1.0) <= job.max_sheen;
-    } else if (neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold ||
-               neighbourhoodMax(r, at_r, job.specular_margin_px) >= job.specular_threshold) {
+    // Gated as the first match was: only a match that converged near the corrected track, with
+    // no sheen and no glint in either view, is averaged in (passed). Every refinement that ran
+    // (settled or not) with no glint near is also a stereo confirmation try (applyRefresh()):
+    // its NCC against the gate. One that did not run (the window clipped by the border, a flat
+    // patch) says nothing.
+    if (!ar.converged && !(ar.rms > 0.0)) continue;
+    if (neighbourhoodMax(r, ar.warp.centre, job.specular_margin_px) >= job.specular_threshold ||
+        neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold) {
       continue;
     }
-    ++out.count;
+    RefreshOutcome::Match& match = out.matches[out.count++];
+    match.index = it.index;
+    match.id = it.id;
+    match.confirms = it.confirms;
+    match.ncc_ok = ar.ncc >= job.min_ncc;
+    match.passed = false;
+    if (ar.converged && cv::norm(ar.warp.centre - at_r) <= 0.5 && match.ncc_ok) {
+      const double mr = regionMean(r, ar.warp.centre, half);
+      match.passed = std::abs(mr / out.left_mean[j] / it.view_gain / drift - 1.0) <= job.max_sheen;
+    }
     match.right_track = it.right_track;
     match.centre = ar.warp.centre + o_r;
     match.warp = job.dark_blobs ? it.warp : ar.warp.a;
@@ -1597,6 +1611,7 @@ void StereoTracker::prepareRefresh(const cv::Mat& left, const cv::Mat& right,
     it.right_track = s.right_track;
     it.warp = s.stereo_warp;
     it.view_gain = s.view_gain;
+    it.confirms = true;
     bool inside = true;
     for (int cam = 0; cam < 2; ++cam) {  // the window, clipped by the image's border
       const cv::Mat& img = cam == 0 ? left : right;
@@ -1633,13 +1648,12 @@ int StereoTracker::applyRefresh(const RefreshOutcome& outcome) noexcept {
     State& s = states_[m.index];
     // The stereo confirmation: its first stereo_confirm_tries refresh matches, whose views are
     // the first pair's but for the noise, judged once.
-    if (s.confirm_tries < config_.stereo_confirm_tries) {
+    if (m.confirms && s.confirm_tries < config_.stereo_confirm_tries) {
       ++s.confirm_tries;
       s.confirmed += m.ncc_ok ? 1 : 0;
       if (s.confirm_tries == config_.stereo_confirm_tries &&
           s.confirmed < config_.min_stereo_confirmed * s.confirm_tries) {
         s.unconfirmed = true;  // hidden from the next pair on, retired at the next detection
-        ++unconfirmed_count_;
       }
     }
     if (!m.passed) continue;

@@ -257,13 +257,15 @@ struct TrackerConfig {
   // min_ncc, the recent one is searched (tissue that deforms: the beating heart). 0: off.
   int template_refresh = 25;
   // Stereo confirmation: a feature whose first stereo_confirm_tries stereo refresh matches
-  // (glinted views not tried) pass the stereo NCC gate in fewer than this share was let in by
-  // its first pair alone (an NCC just over the gate, sheen that one view has): its later pairs'
-  // views, the first pair's but for the noise, do not bear it out. It is hidden as
-  // outlier_epipolar:stereo_ncc and retired at once (a re-detection fills its place).
-  // real-texture-hard: 3D RMS 0.354 -> 0.265 mm (its worst features 0.3-1.0 mm off in depth, first
-  // stereo NCC 0.944-0.952, later ones under 0.94 in 10 to 12 of 12); real-texture-sd 0.150 ->
-  // 0.142 mm; the Hamlyn heart, cortex-60s, cortex-hard and the compression unchanged. 0: off.
+  // (converged, no glint near; not the translation-refined ones) pass the stereo NCC gate in
+  // fewer than this share was let in by its first pair alone (an NCC just over the gate, sheen
+  // that one view has): its next pairs' views, the first pair's but for the noise, do not bear
+  // it out. It is hidden as outlier_epipolar:stereo_ncc and retired by the next re-detection
+  // (which it asks for stereo_confirm_tries pairs later, so that those unconfirmed meanwhile go
+  // in one), its place filled but not with its own corner. real-texture-hard: 3D RMS 0.354 ->
+  // 0.254 mm (its worst features 0.3-1.0 mm off in depth: first stereo NCC 0.944-0.952, the
+  // next pairs' under 0.94 in 10 to 12 of 12); real-texture-sd 0.150 -> 0.142 mm; the Hamlyn
+  // heart, cortex-60s, cortex-hard and the compression unchanged. 0: off.
   double min_stereo_confirmed = 0.25;
   int stereo_confirm_tries = 12;
   // Where the first detection fitted the stereo NCC gate (blurred video, unlike the renders and
@@ -298,6 +300,7 @@ struct RefreshJob {
     cv::Vec2d left, right, right_track;
     cv::Matx22d warp = cv::Matx22d::eye();  // its stereo warp
     double view_gain = 1.0;
+    bool confirms = true;               // its matches count for the stereo confirmation
     std::array<cv::Point, 2> origin{};  // each window's top-left corner in its image
     std::array<cv::Size, 2> size{};     // each window (clipped by the image's border)
   };
@@ -322,12 +325,15 @@ struct RefreshOutcome {
     int id = -1;
     cv::Vec2d right_track, centre;  // the track and the stereo match, in the job's pair
     cv::Matx22d warp = cv::Matx22d::eye();
-    bool passed = false;  // the match passed the gates (else only its verdict counts)
-    bool ncc_ok = false;  // its stereo NCC passed the gate (the stereo confirmation counts it)
+    bool passed = false;    // passed every gate: averaged into the feature's stereo offset
+    bool ncc_ok = false;    // its stereo NCC passed the gate
+    bool confirms = false;  // counted by the stereo confirmation (ncc_ok its verdict)
   };
   RefreshOutcome() = default;
   explicit RefreshOutcome(const TrackerConfig& config);
-  std::vector<Match> matches;  // the first `count`
+  // The first `count`: every converged match without a glint near (those that passed the
+  // gates are averaged in, the others only count for the stereo confirmation).
+  std::vector<Match> matches;
   size_t count = 0;
   // measureRefresh()'s scratch.
   std::vector<size_t> chosen;
@@ -419,11 +425,13 @@ class StereoTracker {
                          double depth_tolerance_mm);
   // Detects again in the current pair with the last ROI and depth tolerance, filling: the
   // features there are keep their ids (hidden ones too, they are searched for every pair); those
-  // not ok for more than retire_after_pairs are retired; new features go only where none are
+  // not ok for more than retire_after_pairs and the unconfirmed ones (min_stereo_confirmed) are
+  // retired; new features go only where none are
   // (fill_distance_px), take new ids (never reused), and their reference position (point0) is
   // where they are now. Returns how many features the tracker has (ok or hidden).
   Result<int> redetect(const cv::Mat& left, const cv::Mat& right);
-  // Features retired by the stereo confirmation (min_stereo_confirmed) since initialize().
+  // Features retired by the stereo confirmation (min_stereo_confirmed) since the tracker was
+  // made.
   [[nodiscard]] int unconfirmedCount() const noexcept { return unconfirmed_count_; }
   [[nodiscard]] bool needsRedetection() const noexcept {
     return (detected_ok_ > 0 && okCount() < config_.redetect_fraction * detected_ok_) ||
@@ -466,9 +474,9 @@ class StereoTracker {
     cv::Vec2d left0, right0;            // the first pair's match
     cv::Vec2d stereo_offset{0.0, 0.0};  // mean (stereo match - right_track)
     int stereo_samples = 1;             // the first pair's match counts as one
-    // The stereo refresh's tries that passed its gates (decayed) against all of them, and how
-    // many there were: a feature whose later pairs keep disagreeing with its first match (sheen
-    // there, a borderline NCC) is unconfirmed, hidden and retired (min_stereo_confirmed).
+    // The stereo confirmation (min_stereo_confirmed): of its first stereo_confirm_tries stereo
+    // refresh matches, how many passed the stereo NCC gate; unconfirmed: too few did (hidden,
+    // retired at the next detection).
     int confirmed = 0, confirm_tries = 0;
     bool unconfirmed = false;
     cv::Matx22d stereo_warp = cv::Matx22d::eye();  // right offset per left offset (affine)
@@ -478,7 +486,9 @@ class StereoTracker {
     // margin (the tracking glint gate tells a glint from gain-brightened tissue by them).
     std::array<double, 2> max0{255.0, 255.0};
     std::array<double, 2> mean0{0.0, 0.0};
-    double view_gain = 1.0;  // right / left brightness here: the nearest features' median
+    // Right / left brightness here: the nearest features' median at detection, in the first
+    // detection's terms (a re-detection's divided by the gains' drift since).
+    double view_gain = 1.0;
     // The rig's signed epipolar offset here (px): the nearest features' median at detection.
     // Tracking gates a match's offset against it (max_epipolar_px).
     double rig_offset = 0.0;
