@@ -47,6 +47,8 @@ TEST(DaemonConfig, TheShippedFileRunsOnTheSimulatedRig) {
   EXPECT_EQ(d->topics.features, "rt/pulsetrack/features");
   EXPECT_EQ(d->retry_interval_s, c->retry_interval_s);
   EXPECT_EQ(d->velocity_window_s, c->velocity_window_s);
+  EXPECT_EQ(d->tracker.min_stereo_confirmed, c->tracker.min_stereo_confirmed);
+  EXPECT_EQ(d->tracker.stereo_refresh, c->tracker.stereo_refresh);
   // The shipped [field] says what the defaults are.
   EXPECT_TRUE(c->field.enabled);
   EXPECT_EQ(c->field.spacing_mm, d->field.spacing_mm);

@@ -127,6 +127,13 @@ constexpr double kFitWhenRejecting = 0.25;
 constexpr double kSpreadRadius = 2.0;
 constexpr size_t kFitMinSamples = 8;
 
+// The upper median of `v` (not empty), which it reorders; no allocation.
+double upperMedian(std::span<double> v) noexcept {
+  const auto mid = v.begin() + static_cast<long>(v.size() / 2);
+  std::nth_element(v.begin(), mid, v.end());
+  return *mid;
+}
+
 // `values` (absolute, NaN or infinite = rejected) judged against `threshold`: where more than
 // kFitWhenRejecting of them fail it, `threshold` becomes `sigmas` robust standard deviations
 // (1.4826 x the median) of the finite ones, at most `bound`, never lower. True when it moved.
@@ -138,10 +145,8 @@ bool fitThreshold(std::vector<double> values, double sigmas, double bound, doubl
     return false;
   std::erase_if(values, [](double v) { return !std::isfinite(v); });
   if (values.empty()) return false;
-  const auto mid = values.begin() + static_cast<long>(values.size() / 2);
-  std::nth_element(values.begin(), mid, values.end());
   constexpr double kMadToSigma = 1.4826;
-  const double fitted = std::min(bound, sigmas * kMadToSigma * *mid);
+  const double fitted = std::min(bound, sigmas * kMadToSigma * upperMedian(values));
   if (!(fitted > threshold)) return false;
   threshold = fitted;
   return true;
@@ -902,12 +907,7 @@ Result<int> StereoTracker::detect(const cv::Mat& left, const cv::Mat& right, con
       if (ratios[i] > 0.0 && states_[i].view_gain > 0.0)
         drifts.push_back(ratios[i] / states_[i].view_gain);
     }
-    double drift = 1.0;
-    if (!drifts.empty()) {
-      std::nth_element(drifts.begin(), drifts.begin() + static_cast<long>(drifts.size() / 2),
-                       drifts.end());
-      drift = drifts[drifts.size() / 2];
-    }
+    const double drift = drifts.empty() ? 1.0 : upperMedian(drifts);
     std::vector<std::pair<double, size_t>> near;  // (distance, feature)
     std::vector<double> local, local_offsets;
     std::vector<double> spread(features_.size(), 0.0);
@@ -1534,9 +1534,7 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
     ++m;
   }
   if (m == 0) return;
-  std::nth_element(out.ratio.begin(), out.ratio.begin() + static_cast<long>(m / 2),
-                   out.ratio.begin() + static_cast<long>(m));
-  const double drift = out.ratio[m / 2];
+  const double drift = upperMedian(std::span(out.ratio).first(m));
   for (size_t j = 0; j < m; ++j) {
     const size_t k = out.chosen[j];
     const RefreshJob::Item& it = job.items[k];
@@ -1565,7 +1563,6 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
     RefreshOutcome::Match& match = out.matches[out.count++];
     match.index = it.index;
     match.id = it.id;
-    match.confirms = it.confirms;
     match.ncc_ok = ar.ncc >= job.min_ncc;
     match.passed = false;
     if (ar.converged && cv::norm(ar.warp.centre - at_r) <= 0.5 && match.ncc_ok) {
@@ -1611,7 +1608,6 @@ void StereoTracker::prepareRefresh(const cv::Mat& left, const cv::Mat& right,
     it.right_track = s.right_track;
     it.warp = s.stereo_warp;
     it.view_gain = s.view_gain;
-    it.confirms = true;
     bool inside = true;
     for (int cam = 0; cam < 2; ++cam) {  // the window, clipped by the image's border
       const cv::Mat& img = cam == 0 ? left : right;
@@ -1648,7 +1644,7 @@ int StereoTracker::applyRefresh(const RefreshOutcome& outcome) noexcept {
     State& s = states_[m.index];
     // The stereo confirmation: its first stereo_confirm_tries refresh matches, whose views are
     // the first pair's but for the noise, judged once.
-    if (m.confirms && s.confirm_tries < config_.stereo_confirm_tries) {
+    if (s.confirm_tries < config_.stereo_confirm_tries) {
       ++s.confirm_tries;
       s.confirmed += m.ncc_ok ? 1 : 0;
       if (s.confirm_tries == config_.stereo_confirm_tries &&

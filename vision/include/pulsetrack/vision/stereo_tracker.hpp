@@ -300,7 +300,6 @@ struct RefreshJob {
     cv::Vec2d left, right, right_track;
     cv::Matx22d warp = cv::Matx22d::eye();  // its stereo warp
     double view_gain = 1.0;
-    bool confirms = true;               // its matches count for the stereo confirmation
     std::array<cv::Point, 2> origin{};  // each window's top-left corner in its image
     std::array<cv::Size, 2> size{};     // each window (clipped by the image's border)
   };
@@ -325,9 +324,8 @@ struct RefreshOutcome {
     int id = -1;
     cv::Vec2d right_track, centre;  // the track and the stereo match, in the job's pair
     cv::Matx22d warp = cv::Matx22d::eye();
-    bool passed = false;    // passed every gate: averaged into the feature's stereo offset
-    bool ncc_ok = false;    // its stereo NCC passed the gate
-    bool confirms = false;  // counted by the stereo confirmation (ncc_ok its verdict)
+    bool passed = false;  // passed every gate: averaged into the feature's stereo offset
+    bool ncc_ok = false;  // its stereo NCC passed the gate (the stereo confirmation's verdict)
   };
   RefreshOutcome() = default;
   explicit RefreshOutcome(const TrackerConfig& config);
