@@ -158,6 +158,101 @@ TEST(AffineRefiner, AnIntensityRampInOneViewDoesNotMoveTheRampModelsMatch) {
   EXPECT_GT(ncc_ramp, ncc_plain);
 }
 
+// The stereo refresh's match where a glint is near: the light reflects towards one camera, so
+// a glint (a saturated core and the sheen around it) sits in one view's patch and not in the
+// other's. Left out (AffineMask: the core grown by 5 px, in whichever view has it), it does not
+// pull the affine match; counted, it does.
+TEST(AffineRefiner, AGlintInEitherViewLeftOutDoesNotPullTheStereoMatch) {
+  std::mt19937 rng(23);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  double sum_all = 0.0, sum_masked = 0.0, worst = 0.0, left_out = 0.0;
+  constexpr int kTrials = 40;
+  const auto add_glint = [](cv::Mat& img, const cv::Vec2d& at) {
+    for (int y = 0; y < img.rows; ++y) {
+      for (int x = 0; x < img.cols; ++x) {
+        const double r2 = (x - at[0]) * (x - at[0]) + (y - at[1]) * (y - at[1]);
+        auto& v = img.at<uint8_t>(y, x);
+        v = r2 <= 2.5 * 2.5 ? 255 : cv::saturate_cast<uint8_t>(v + 130.0 * std::exp(-r2 / 12.5));
+      }
+    }
+  };
+  for (int trial = 0; trial < kTrials; ++trial) {
+    const Texture tex(static_cast<unsigned>(trial + 500));
+    cv::Mat src8 = tex.image([](const cv::Vec2d& p) { return p; });
+    const double angle = 0.05 * u(rng), scale = 1.0 + 0.04 * u(rng), shear = 0.05 * u(rng);
+    const cv::Matx22d m =
+        cv::Matx22d(std::cos(angle), -std::sin(angle), std::sin(angle), std::cos(angle)) *
+        cv::Matx22d(scale, shear, 0.0, scale);
+    const cv::Vec2d centre(101.0 + u(rng), 99.0 + u(rng));
+    const cv::Matx22d mi = m.inv();
+    cv::Mat moved8 = tex.image(
+        [&](const cv::Vec2d& p) { return cv::Vec2d(100, 100) + mi * (p - centre); }, 0.8, 15.0);
+    // The glint 6.5-8.5 px from the patch's centre, in the right view (even trials) or the left.
+    const double dir = CV_PI * u(rng), radius = 7.5 + u(rng);
+    const cv::Vec2d off = radius * cv::Vec2d(std::cos(dir), std::sin(dir));
+    if (trial % 2 == 0) {
+      add_glint(moved8, centre + off);
+    } else {
+      add_glint(src8, cv::Vec2d(100, 100) + off);
+    }
+    AffineTemplate t;
+    ASSERT_TRUE(
+        t.set(src8.data, src8.step, src8.cols, src8.rows, {{100.0, 100.0}, cv::Matx22d::eye()}));
+    const AffineWarp start{{std::round(centre[0]), std::round(centre[1])}, cv::Matx22d::eye()};
+    const AffineResult all = t.refine(moved8.data, moved8.step, moved8.cols, moved8.rows, start);
+    AffineMask mask;
+    mask.reset();
+    mask.leaveOutGlints(src8.data, src8.step, src8.cols, src8.rows,
+                        {{100.0, 100.0}, cv::Matx22d::eye()}, 250, 5);
+    const double out =
+        mask.leaveOutGlints(moved8.data, moved8.step, moved8.cols, moved8.rows, start, 250, 5);
+    EXPECT_GT(out, 0.05) << trial;  // the glint is near: some of the patch is left out
+    EXPECT_LT(out, 0.6) << trial;
+    left_out += out / kTrials;
+    const AffineResult masked =
+        t.refine(moved8.data, moved8.step, moved8.cols, moved8.rows, start, mask);
+    ASSERT_TRUE(masked.converged) << trial;
+    const double e_all = cv::norm(all.warp.centre - centre);
+    const double e = cv::norm(masked.warp.centre - centre);
+    EXPECT_LT(e, 0.06) << trial;
+    EXPECT_GT(masked.ncc, 0.99) << trial;  // the pixels left are the same texture in both views
+    worst = std::max(worst, e);
+    sum_all += e_all * e_all;
+    sum_masked += e * e;
+  }
+  const double rms_all = std::sqrt(sum_all / kTrials), rms = std::sqrt(sum_masked / kTrials);
+  std::cout
+      << "a glint 6.5-8.5 px from the centre in one view of 40 affinely warped patches, stereo "
+         "match error RMS: counted "
+      << rms_all << " px, left out " << rms << " px (worst " << worst << ", " << 100.0 * left_out
+      << " % of the patch left out on average)\n";
+  EXPECT_LT(rms, 0.03);
+  EXPECT_GT(rms_all, 5.0 * rms);
+}
+
+// A mask that leaves too little, or a ramp-modelling template (its ramps are projected out over
+// the whole grid), is not refined: unconverged, never a match from a sliver of the patch.
+TEST(AffineRefiner, AMaskThatLeavesTooLittleIsRefused) {
+  const Texture tex(7);
+  const cv::Mat src8 = tex.image([](const cv::Vec2d& p) { return p; });
+  const AffineWarp rest{{100.0, 100.0}, cv::Matx22d::eye()};
+  AffineTemplate t, ramp;
+  ASSERT_TRUE(t.set(src8.data, src8.step, src8.cols, src8.rows, rest));
+  ASSERT_TRUE(ramp.set(src8.data, src8.step, src8.cols, src8.rows, rest, true));
+  AffineMask mask;
+  mask.reset();
+  EXPECT_EQ(mask.count, kAffinePixels);
+  EXPECT_TRUE(t.refine(src8.data, src8.step, src8.cols, src8.rows, rest, mask).converged);
+  EXPECT_FALSE(ramp.refine(src8.data, src8.step, src8.cols, src8.rows, rest, mask).converged);
+  // A saturated square over all but the patch's last three rows: 45 of 225 pixels left.
+  cv::Mat lit = src8.clone();
+  lit(cv::Rect(80, 80, 40, 25)).setTo(255);
+  const double out = mask.leaveOutGlints(lit.data, lit.step, lit.cols, lit.rows, rest, 250, 0);
+  EXPECT_NEAR(out, 1.0 - 45.0 / kAffinePixels, 1e-9);
+  EXPECT_EQ(mask.count, 45);
+  EXPECT_FALSE(t.refine(src8.data, src8.step, src8.cols, src8.rows, rest, mask).converged);
+}
+
 TEST(AffineRefiner, RefusesFlatPatchesAndTheBorder) {
   const cv::Mat flat(50, 50, CV_8UC1, cv::Scalar(100));
   AffineTemplate t;

@@ -428,6 +428,75 @@ TEST(StereoTracker, AFeatureItsNextPairsDoNotBearOutIsRetired) {
   EXPECT_FALSE(on_t.needsRedetection());
 }
 
+// The stereo refresh's consensus: a feature whose refresh matches agree with each other but
+// not with its first pair's match (which a one-off highlight or the noise put 0.7 px off) takes
+// theirs once kConsensusMin of them agree, where the running average alone would never get there
+// (it takes only matches within 0.5 px of the corrected track). Its reference point moves with
+// it: its displacement does not see the correction. Votes that disagree with each other (a
+// glint pulling one way, then the other) re-seat nothing.
+TEST(StereoTracker, AFirstStereoMatchItsNextPairsAgreeOffIsReseated) {
+  sim::SceneSpec spec = staticCortex();
+  spec.supersample = 1;
+  spec.cortex.instrument.enabled = false;
+  sim::StereoSimulator s(spec, sim::paperRig());
+  TrackerConfig config;
+  config.stereo_refresh = config.max_features;  // every feature tried in every pair
+  cv::Mat l, r;
+  s.render(0, l, r);
+  StereoTracker agreeing(s.rig(), config), split(s.rig(), config), clean(s.rig(), config);
+  for (StereoTracker* t : {&agreeing, &split, &clean})
+    ASSERT_TRUE(t->initialize(l, r, roiFor(s, 19.0), 20.0));
+  const int victim = clean.features()[0].id;
+  ASSERT_EQ(agreeing.features()[0].id, victim);
+  RefreshJob job(config);
+  RefreshOutcome outcome(config);
+  const cv::Vec2d off(0.7, 0.0);
+  // The split votes: 0.6-1.8 px off, all beyond the running average's 0.5 px, agreeing on nothing
+  // (their median absolute deviation 0.4 px).
+  constexpr std::array<double, 5> kSplit{0.6, 1.4, 1.0, 1.8, 0.8};
+  int votes = 0, split_votes = 0;
+  const auto displacement = [](const StereoTracker& t) {
+    return t.features()[0].point - t.features()[0].point0;
+  };
+  for (int i = 1; i <= 3 * StereoTracker::kConsensusMin; ++i) {
+    s.render(i, l, r);
+    for (StereoTracker* t : {&agreeing, &split, &clean}) {
+      t->track(l, r);
+      ASSERT_EQ(t->features()[0].status, FeatureStatus::kOk) << "pair " << i;
+    }
+    // What the votes so far (applied after the last pair) did.
+    const cv::Vec2d moved = agreeing.features()[0].right - clean.features()[0].right;
+    if (votes < StereoTracker::kConsensusMin) {
+      EXPECT_LT(cv::norm(moved), 0.1) << "pair " << i << ", " << votes << " votes";
+    } else {
+      EXPECT_LT(cv::norm(moved - off), 0.1) << "pair " << i << ", " << votes << " votes";
+    }
+    EXPECT_LT(cv::norm(split.features()[0].right - clean.features()[0].right), 0.1) << "pair " << i;
+    EXPECT_LT(cv::norm(displacement(agreeing) - displacement(clean)), 0.01) << "pair " << i;
+    for (StereoTracker* t : {&agreeing, &split, &clean}) {
+      t->prepareRefresh(l, r, job);
+      measureRefresh(job, outcome);
+      for (size_t k = 0; k < outcome.count && t != &clean; ++k) {
+        RefreshOutcome::Match& m = outcome.matches[k];
+        if (m.id != victim || !m.agrees) continue;
+        const bool agree = t == &agreeing;
+        m.centre += agree ? off : cv::Vec2d(kSplit[static_cast<size_t>(split_votes) % 5], 0.0);
+        // Gated as measureRefresh() gates: within 0.5 px of the corrected track.
+        m.passed = cv::norm(m.centre - t->features()[0].right) <= 0.5;
+        (agree ? votes : split_votes) += 1;
+      }
+      (void)t->applyRefresh(outcome);
+    }
+  }
+  EXPECT_GE(votes, StereoTracker::kConsensusMin + 2);
+  EXPECT_GE(split_votes, StereoTracker::kConsensusMin + 2);
+  // The re-seat moved the victim's depth by what 0.7 px of disparity is.
+  const double dz = agreeing.features()[0].point[2] - clean.features()[0].point[2];
+  std::cout << "a first stereo match 0.7 px off, its refresh matches agreeing: re-seated after "
+            << StereoTracker::kConsensusMin << " votes, its depth moved " << dz << " mm\n";
+  EXPECT_GT(std::abs(dz), 0.1);
+}
+
 // Features found by a re-detection after the cameras' gains drifted apart are sheen-gated in
 // the stereo refresh as the first detection's are (their view gain is kept in the first
 // detection's terms): the right camera 10 % brighter from pair 1 on, a quarter of the ROI's

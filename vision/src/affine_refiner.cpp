@@ -225,33 +225,86 @@ bool AffineTemplate::set(const uint8_t* image, size_t stride, int width, int hei
 AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int width, int height,
                                     const AffineWarp& start, int max_iterations,
                                     double epsilon_px) const noexcept {
+  return iterate(image, stride, width, height, start, max_iterations, epsilon_px, nullptr, h_inv_,
+                 mean_, spread_, kAffinePixels);
+}
+
+AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int width, int height,
+                                    const AffineWarp& start, const AffineMask& mask,
+                                    int max_iterations, double epsilon_px) const noexcept {
+  AffineResult res;
+  res.warp = start;
+  if (ramp_ || 4 * mask.count < kAffinePixels) return res;
+  // The template's mean, spread and Hessian over the pixels taking part.
+  double n = 0.0, s = 0.0, s2 = 0.0;
+  cv::Matx<double, 6, 6> h = cv::Matx<double, 6, 6>::zeros();
+  for (size_t k = 0; k < static_cast<size_t>(kAffinePixels); ++k) {
+    if (mask.weight[k] == 0.0F) continue;
+    n += 1.0;
+    s += t_[k];
+    s2 += static_cast<double>(t_[k]) * t_[k];
+    const auto& row = sd_[k];
+    for (int i = 0; i < 6; ++i) {
+      for (int j = i; j < 6; ++j)
+        h(i, j) += double(row[static_cast<size_t>(i)]) * row[static_cast<size_t>(j)];
+    }
+  }
+  for (int i = 0; i < 6; ++i) {
+    for (int j = 0; j < i; ++j) h(i, j) = h(j, i);
+  }
+  const double mean = s / n;
+  const double spread = std::sqrt(std::max(0.0, s2 / n - mean * mean));
+  if (spread < 1.0) return res;
+  bool ok = false;
+  const cv::Matx<double, 6, 6> h_inv = h.inv(cv::DECOMP_CHOLESKY, &ok);
+  if (!ok) return res;
+  return iterate(image, stride, width, height, start, max_iterations, epsilon_px,
+                 mask.weight.data(), h_inv, mean, spread, mask.count);
+}
+
+AffineResult AffineTemplate::iterate(const uint8_t* image, size_t stride, int width, int height,
+                                     const AffineWarp& start, int max_iterations, double epsilon_px,
+                                     const float* weight, const cv::Matx<double, 6, 6>& h_inv,
+                                     double t_mean, double t_spread, int count) const noexcept {
   AffineResult res;
   res.warp = start;
   std::array<float, kAffinePixels> patch{};
+  const bool ramp = ramp_ && weight == nullptr;
   for (int it = 0; it < max_iterations; ++it) {
     res.iterations = it + 1;
     if (!warpedPatch<kAffineSide>(image, stride, width, height, res.warp, patch.data())) return res;
     double mean = 0, spread = 0;
-    meanSpread(patch, mean, spread);
-    const cv::Vec2d moments = ramp_ ? rampMoments(patch) : cv::Vec2d();
-    if (ramp_) spread = rampFreeSpread(spread, moments);
+    if (weight == nullptr) {
+      meanSpread(patch, mean, spread);
+    } else {
+      double s = 0.0, s2 = 0.0;
+      for (size_t k = 0; k < static_cast<size_t>(kAffinePixels); ++k) {
+        s += weight[k] * patch[k];
+        s2 += weight[k] * static_cast<double>(patch[k]) * patch[k];
+      }
+      mean = s / count;
+      spread = std::sqrt(std::max(0.0, s2 / count - mean * mean));
+    }
+    const cv::Vec2d moments = ramp ? rampMoments(patch) : cv::Vec2d();
+    if (ramp) spread = rampFreeSpread(spread, moments);
     if (spread < 1e-6) return res;
-    const double gain = spread_ / spread;
+    const double gain = t_spread / spread;
     cv::Vec<double, 6> b = cv::Vec<double, 6>::all(0.0);
     double sse = 0.0;
     for (size_t k = 0; k < static_cast<size_t>(kAffinePixels); ++k) {
-      const double e = (patch[k] - mean) * gain + mean_ - t_[k];
+      if (weight != nullptr && weight[k] == 0.0F) continue;
+      const double e = (patch[k] - mean) * gain + t_mean - t_[k];
       sse += e * e;
       for (size_t i = 0; i < 6; ++i) b[static_cast<int>(i)] += sd_[k][i] * e;
     }
-    if (ramp_) {
+    if (ramp) {
       // The residual's ramps (its moments follow from the two patches'), left out of the error.
       const cv::Vec2d e = gain * moments - ramp_moments_;
       sse = std::max(0.0, sse - e.dot(e) / kRampNorm);
     }
-    res.rms = std::sqrt(sse / kAffinePixels);
-    res.ncc = 1.0 - sse / (2.0 * kAffinePixels * spread_ * spread_);
-    const cv::Vec<double, 6> dp = h_inv_ * b;
+    res.rms = std::sqrt(sse / count);
+    res.ncc = 1.0 - sse / (2.0 * count * t_spread * t_spread);
+    const cv::Vec<double, 6> dp = h_inv * b;
     // Inverse composition: W <- W o W(dp)^-1, with W(dp) = [I + D | t].
     const cv::Matx22d d(1.0 + dp[0], dp[2], dp[1], 1.0 + dp[3]);
     const cv::Matx22d d_inv = d.inv();
@@ -275,6 +328,41 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
     }
   }
   return res;
+}
+
+void AffineMask::reset() noexcept {
+  weight.fill(1.0F);
+  count = kAffinePixels;
+}
+
+double AffineMask::leaveOutGlints(const uint8_t* image, size_t stride, int width, int height,
+                                  const AffineWarp& warp, int threshold, int grow_px) noexcept {
+  const int g = std::max(0, grow_px);
+  size_t k = 0;
+  for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
+    for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
+      if (weight[k] == 0.0F) continue;
+      const double u = warp.centre[0] + warp.a(0, 0) * x + warp.a(0, 1) * y;
+      const double v = warp.centre[1] + warp.a(1, 0) * x + warp.a(1, 1) * y;
+      if (!(std::abs(u) < 1e6) || !(std::abs(v) < 1e6)) continue;
+      const int cx = static_cast<int>(std::lround(u)), cy = static_cast<int>(std::lround(v));
+      bool glint = false;
+      for (int yy = std::max(0, cy - g); yy <= std::min(height - 1, cy + g) && !glint; ++yy) {
+        const uint8_t* row = image + static_cast<size_t>(yy) * stride;
+        for (int xx = std::max(0, cx - g); xx <= std::min(width - 1, cx + g); ++xx) {
+          if (row[xx] >= threshold) {
+            glint = true;
+            break;
+          }
+        }
+      }
+      if (glint) {
+        weight[k] = 0.0F;
+        --count;
+      }
+    }
+  }
+  return 1.0 - static_cast<double>(count) / kAffinePixels;
 }
 
 constexpr int kShiftBig = kShiftSide + 2;  // the template with a sample of margin

@@ -1541,11 +1541,32 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
     const cv::Mat l = job.window(k, 0), r = job.window(k, 1);
     const cv::Vec2d o_l(it.origin[0].x, it.origin[0].y), o_r(it.origin[1].x, it.origin[1].y);
     const cv::Vec2d at_l = it.left - o_l, at_r = it.right - o_r;
-    // The same refinement as the first pair's match, from where the feature is now.
+    // The same refinement as the first pair's match, from where the feature is now; with a
+    // glint near either view there, with its pixels left out.
+    const bool glint_near =
+        neighbourhoodMax(r, at_r, job.specular_margin_px) >= job.specular_threshold ||
+        neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold;
+    bool masked = false;
     AffineResult ar;
     if (job.dark_blobs) {
-      if (out.shift.set(l.data, l.step, l.cols, l.rows, at_l))
+      if (!glint_near && out.shift.set(l.data, l.step, l.cols, l.rows, at_l))
         ar = out.shift.refine(r.data, r.step, r.cols, r.rows, at_r);
+    } else if (glint_near) {
+      if (job.max_glint_fraction <= 0.0 || job.ramp ||
+          !out.affine.set(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()}, false)) {
+        continue;
+      }
+      out.mask.reset();
+      out.mask.leaveOutGlints(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()},
+                              job.specular_threshold, job.glint_grow_px);
+      if (out.mask.leaveOutGlints(r.data, r.step, r.cols, r.rows, {at_r, it.warp},
+                                  job.specular_threshold,
+                                  job.glint_grow_px) > job.max_glint_fraction) {
+        continue;
+      }
+      ar = out.affine.refine(r.data, r.step, r.cols, r.rows, {at_r, it.warp}, out.mask, 20, 0.01);
+      if (!ar.converged) continue;
+      masked = true;
     } else if (out.affine.set(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()},
                               job.ramp)) {
       ar = out.affine.refine(r.data, r.step, r.cols, r.rows, {at_r, it.warp}, 20, 0.01);
@@ -1556,8 +1577,8 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
     // its NCC against the gate. One that did not run (the window clipped by the border, a flat
     // patch) says nothing.
     if (!ar.converged && !(ar.rms > 0.0)) continue;
-    if (neighbourhoodMax(r, ar.warp.centre, job.specular_margin_px) >= job.specular_threshold ||
-        neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold) {
+    if (!masked &&
+        neighbourhoodMax(r, ar.warp.centre, job.specular_margin_px) >= job.specular_threshold) {
       continue;
     }
     RefreshOutcome::Match& match = out.matches[out.count++];
@@ -1565,9 +1586,16 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
     match.id = it.id;
     match.ncc_ok = ar.ncc >= job.min_ncc;
     match.passed = false;
-    if (ar.converged && cv::norm(ar.warp.centre - at_r) <= 0.5 && match.ncc_ok) {
+    match.agrees = false;
+    const double far = cv::norm(ar.warp.centre - at_r);
+    match.masked = masked;
+    if (ar.converged && far <= job.consensus_far_px && match.ncc_ok) {
+      // The sheen gate: the patch's brightness ratio between the views (a masked match's
+      // glint is left out of the match, not of the ratio).
       const double mr = regionMean(r, ar.warp.centre, half);
-      match.passed = std::abs(mr / out.left_mean[j] / it.view_gain / drift - 1.0) <= job.max_sheen;
+      match.agrees =
+          masked || std::abs(mr / out.left_mean[j] / it.view_gain / drift - 1.0) <= job.max_sheen;
+      match.passed = match.agrees && far <= 0.5;
     }
     match.right_track = it.right_track;
     match.centre = ar.warp.centre + o_r;
@@ -1587,6 +1615,9 @@ void StereoTracker::prepareRefresh(const cv::Mat& left, const cv::Mat& right,
   }
   job.min_ncc = std::max(config_.min_ncc, gates_.min_stereo_ncc);
   job.max_sheen = gates_.max_sheen;
+  job.consensus_far_px = kConsensusFarPx;
+  job.max_glint_fraction = config_.max_glint_fraction;
+  job.glint_grow_px = config_.glint_grow_px;
   job.specular_margin_px = config_.specular_margin_px;
   job.specular_threshold = config_.specular_threshold;
   job.dark_blobs = config_.detector == Detector::kDarkBlobs;
@@ -1644,13 +1675,21 @@ int StereoTracker::applyRefresh(const RefreshOutcome& outcome) noexcept {
     State& s = states_[m.index];
     // The stereo confirmation: its first stereo_confirm_tries refresh matches, whose views are
     // the first pair's but for the noise, judged once.
-    if (s.confirm_tries < config_.stereo_confirm_tries) {
+    if (!m.masked && s.confirm_tries < config_.stereo_confirm_tries) {
       ++s.confirm_tries;
       s.confirmed += m.ncc_ok ? 1 : 0;
       if (s.confirm_tries == config_.stereo_confirm_tries &&
           s.confirmed < config_.min_stereo_confirmed * s.confirm_tries) {
         s.unconfirmed = true;  // hidden from the next pair on, retired at the next detection
       }
+    }
+    if (m.agrees && reseat(s, m.centre - m.right_track)) {
+      // The first pair's match was off (its votes agree elsewhere): the offset starts again
+      // from theirs, the reference point with it.
+      const Triangulation t0 = triangulate(rig_, s.left0, s.right0 + s.stereo_offset);
+      if (t0.ok) f.point0 = t0.point;
+      ++taken;
+      continue;
     }
     if (!m.passed) continue;
     s.stereo_samples = std::min(s.stereo_samples + 1, window);
@@ -1662,6 +1701,31 @@ int StereoTracker::applyRefresh(const RefreshOutcome& outcome) noexcept {
     ++taken;
   }
   return taken;
+}
+
+bool StereoTracker::reseat(State& s, const cv::Vec2d& vote) noexcept {
+  s.votes[static_cast<size_t>(s.vote_next)] = vote;
+  s.vote_next = (s.vote_next + 1) % kConsensus;
+  s.vote_count = std::min(s.vote_count + 1, kConsensus);
+  if (s.vote_count < kConsensusMin) return false;
+  std::array<double, kConsensus> v{};
+  const std::span<double> used = std::span(v).first(static_cast<size_t>(s.vote_count));
+  cv::Vec2d med, mad;
+  for (int c = 0; c < 2; ++c) {
+    for (size_t k = 0; k < used.size(); ++k) used[k] = s.votes[k][c];
+    med[c] = upperMedian(used);
+    for (size_t k = 0; k < used.size(); ++k) used[k] = std::abs(s.votes[k][c] - med[c]);
+    mad[c] = upperMedian(used);
+  }
+  if (cv::norm(med - s.stereo_offset) < kConsensusMovePx || mad[0] > kConsensusSpreadPx ||
+      mad[1] > kConsensusSpreadPx) {
+    return false;
+  }
+  s.stereo_offset = med;
+  s.stereo_samples = s.vote_count;
+  s.vote_count = 0;  // the next re-seat needs votes of its own
+  s.vote_next = 0;
+  return true;
 }
 
 int StereoTracker::refreshStereo(const cv::Mat& left, const cv::Mat& right) noexcept {

@@ -63,6 +63,21 @@ struct AffineResult {
   bool converged = false;
 };
 
+// Which of the affine template's pixels take part in a match (1) and which are left out (0):
+// the stereo match's ShiftMask. A glint differs between the views (the light reflects towards
+// one camera), so a pixel is left out where either view has one near.
+struct AffineMask {
+  std::array<float, kAffinePixels> weight{};  // 0 or 1, row-major
+  int count = 0;                              // pixels taking part
+
+  // Every pixel, then those of the patch that `warp` places on `image` within `grow_px`
+  // (Chebyshev distance) of a pixel at or above `threshold` left out; may be called once per
+  // view (the left template's and the right match's). Returns the fraction left out so far.
+  void reset() noexcept;
+  double leaveOutGlints(const uint8_t* image, size_t stride, int width, int height,
+                        const AffineWarp& warp, int threshold, int grow_px) noexcept;
+};
+
 class AffineTemplate {
  public:
   // Samples the template around `centre` (sub-pixel, bilinear) of an 8-bit image with the
@@ -79,10 +94,25 @@ class AffineTemplate {
   [[nodiscard]] AffineResult refine(const uint8_t* image, size_t stride, int width, int height,
                                     const AffineWarp& start, int max_iterations = 20,
                                     double epsilon_px = 1e-3) const noexcept;
+  // The same over `mask`'s pixels only (weighted inverse compositional: the template's mean,
+  // spread and Hessian over them, once per call; the NCC is theirs). Not with `ramp` (the ramps
+  // are projected out over the whole grid): unconverged. Unconverged too when fewer than a
+  // quarter of the pixels are left or what is left is flat or its Hessian singular.
+  [[nodiscard]] AffineResult refine(const uint8_t* image, size_t stride, int width, int height,
+                                    const AffineWarp& start, const AffineMask& mask,
+                                    int max_iterations = 20,
+                                    double epsilon_px = 1e-3) const noexcept;
 
   [[nodiscard]] const std::array<float, kAffinePixels>& pixels() const { return t_; }
 
  private:
+  // The Gauss-Newton iterations over `weight`'s pixels (nullptr: all), with the template's
+  // Hessian inverse, mean and spread over them and their count.
+  [[nodiscard]] AffineResult iterate(const uint8_t* image, size_t stride, int width, int height,
+                                     const AffineWarp& start, int max_iterations, double epsilon_px,
+                                     const float* weight, const cv::Matx<double, 6, 6>& h_inv,
+                                     double t_mean, double t_spread, int count) const noexcept;
+
   std::array<float, kAffinePixels> t_{};
   std::array<std::array<float, 6>, kAffinePixels> sd_{};  // steepest-descent images
   cv::Matx<double, 6, 6> h_inv_;

@@ -314,6 +314,11 @@ struct RefreshJob {
   size_t count = 0;
   // The gates as the tracker had them at prepareRefresh().
   double min_ncc = 0.0, max_sheen = 0.0;
+  double consensus_far_px = 0.5;  // how far from the corrected track a match still votes
+  // A glint near: its pixels (grown by glint_grow_px) left out of the match, when at most
+  // max_glint_fraction of the template is; 0: such features are not matched.
+  double max_glint_fraction = 0.0;
+  int glint_grow_px = 0;
   int specular_margin_px = 0, specular_threshold = 255;
   bool dark_blobs = false, ramp = false;
 };
@@ -326,6 +331,12 @@ struct RefreshOutcome {
     cv::Matx22d warp = cv::Matx22d::eye();
     bool passed = false;  // passed every gate: averaged into the feature's stereo offset
     bool ncc_ok = false;  // its stereo NCC passed the gate (the stereo confirmation's verdict)
+    // Every gate but the distance from the corrected track (within kConsensusFarPx): a vote in
+    // the feature's consensus (StereoTracker::applyRefresh()).
+    bool agrees = false;
+    // Refined with a glint near left out (AffineMask): not a stereo confirmation try (the
+    // first pair's match had no glint near).
+    bool masked = false;
   };
   RefreshOutcome() = default;
   explicit RefreshOutcome(const TrackerConfig& config);
@@ -337,6 +348,7 @@ struct RefreshOutcome {
   std::vector<size_t> chosen;
   std::vector<double> left_mean, ratio;
   AffineTemplate affine;
+  AffineMask mask;
   ShiftTemplate shift;
 };
 
@@ -461,7 +473,17 @@ class StereoTracker {
   }
   [[nodiscard]] int okCount() const noexcept;
 
+  // The stereo refresh's consensus (State::votes): this many recent votes, re-seated when at
+  // least kConsensusMin agree within kConsensusSpreadPx (their median absolute deviation) on an
+  // offset kConsensusMovePx or more from the feature's. A vote is at most kConsensusFarPx from
+  // the corrected track (further is another texture's optimum, not this one's).
+  static constexpr int kConsensus = 8, kConsensusMin = 5;
+  static constexpr double kConsensusSpreadPx = 0.2, kConsensusMovePx = 0.35, kConsensusFarPx = 2.0;
+
  private:
+  struct State;
+  // One vote in s's consensus; true when it re-seated s's stereo offset.
+  static bool reseat(State& s, const cv::Vec2d& vote) noexcept;
   struct State {
     NccTemplate ncc[2];
     ShiftTemplate shift[2];
@@ -472,6 +494,11 @@ class StereoTracker {
     cv::Vec2d left0, right0;            // the first pair's match
     cv::Vec2d stereo_offset{0.0, 0.0};  // mean (stereo match - right_track)
     int stereo_samples = 1;             // the first pair's match counts as one
+    // The last kConsensus refresh matches that passed every gate but the distance from the
+    // corrected track (stereo match - right_track): where they agree with each other and not
+    // with the offset, the first pair's match was off and the offset is re-seated there.
+    std::array<cv::Vec2d, kConsensus> votes{};
+    int vote_count = 0, vote_next = 0;
     // The stereo confirmation (min_stereo_confirmed): of its first stereo_confirm_tries stereo
     // refresh matches, how many passed the stereo NCC gate; unconfirmed: too few did (hidden,
     // retired at the next detection).
