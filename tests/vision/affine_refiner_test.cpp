@@ -230,6 +230,57 @@ TEST(AffineRefiner, AGlintInEitherViewLeftOutDoesNotPullTheStereoMatch) {
   EXPECT_GT(rms_all, 5.0 * rms);
 }
 
+// A masked match's NCC and residual are those of the pixels it kept: noise on the image, the left
+// half of the template left out; the NCC over the kept half computed here where the match settled.
+TEST(AffineRefiner, AMaskedMatchsNccIsThePixelsItKept) {
+  const Texture tex(11);
+  const cv::Mat src8 = tex.image([](const cv::Vec2d& p) { return p; });
+  cv::Mat noisy = tex.image([](const cv::Vec2d& p) { return p - cv::Vec2d(3.0, -2.0); });
+  cv::Mat noise(noisy.size(), CV_16SC1);
+  cv::randn(noise, 0.0, 12.0);
+  cv::Mat n16;
+  noisy.convertTo(n16, CV_16SC1);
+  cv::Mat(n16 + noise).convertTo(noisy, CV_8UC1);
+  AffineTemplate t;
+  ASSERT_TRUE(
+      t.set(src8.data, src8.step, src8.cols, src8.rows, {{100.0, 100.0}, cv::Matx22d::eye()}));
+  AffineMask mask;
+  mask.reset();
+  for (size_t k = 0; k < static_cast<size_t>(kAffinePixels); ++k) {
+    if (k % kAffineSide < kAffineHalf) {
+      mask.weight[k] = 0.0F;
+      --mask.count;
+    }
+  }
+  const AffineWarp start{{103.0, 98.0}, cv::Matx22d::eye()};
+  const AffineResult m = t.refine(noisy.data, noisy.step, noisy.cols, noisy.rows, start, mask);
+  ASSERT_TRUE(m.converged);
+  EXPECT_LT(cv::norm(m.warp.centre - start.centre), 0.5);
+  // The patch where the match settled, sampled as the refinement samples (Catmull-Rom).
+  double st = 0, sp = 0, stt = 0, spp = 0, stp = 0, n = 0;
+  size_t k = 0;
+  for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
+    for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
+      if (mask.weight[k] == 0.0F) continue;
+      const cv::Vec2d p = m.warp.centre + m.warp.a * cv::Vec2d(x, y);
+      float v = 0.0F;
+      ASSERT_TRUE(sampleBicubic(noisy.data, noisy.step, noisy.cols, noisy.rows, p[0], p[1], v));
+      const double a = t.pixels()[k], b = v;
+      st += a;
+      sp += b;
+      stt += a * a;
+      spp += b * b;
+      stp += a * b;
+      n += 1.0;
+    }
+  }
+  const double ncc = (stp - st * sp / n) / std::sqrt((stt - st * st / n) * (spp - sp * sp / n));
+  std::cout << "masked match, half the template kept, noise 12 grey levels: NCC " << m.ncc
+            << ", over the kept pixels there " << ncc << "\n";
+  EXPECT_LT(ncc, 0.95);  // the noise shows: a wrong normalization would too
+  EXPECT_NEAR(m.ncc, ncc, 0.002);
+}
+
 // A mask that leaves too little, or a ramp-modelling template (its ramps are projected out over
 // the whole grid), is not refined: unconverged, never a match from a sliver of the patch.
 TEST(AffineRefiner, AMaskThatLeavesTooLittleIsRefused) {
@@ -242,7 +293,17 @@ TEST(AffineRefiner, AMaskThatLeavesTooLittleIsRefused) {
   AffineMask mask;
   mask.reset();
   EXPECT_EQ(mask.count, kAffinePixels);
-  EXPECT_TRUE(t.refine(src8.data, src8.step, src8.cols, src8.rows, rest, mask).converged);
+  // A mask that keeps every pixel is the unmasked refinement, to the last bit of its figures.
+  const AffineWarp moved{{101.3, 98.6}, cv::Matx22d::eye()};
+  const cv::Mat shifted = tex.image([](const cv::Vec2d& p) { return p - cv::Vec2d(1.4, -1.3); });
+  const AffineResult whole =
+      t.refine(shifted.data, shifted.step, shifted.cols, shifted.rows, moved);
+  const AffineResult all =
+      t.refine(shifted.data, shifted.step, shifted.cols, shifted.rows, moved, mask);
+  ASSERT_TRUE(whole.converged && all.converged);
+  EXPECT_NEAR(cv::norm(whole.warp.centre - all.warp.centre), 0.0, 1e-9);
+  EXPECT_NEAR(whole.ncc, all.ncc, 1e-9);
+  EXPECT_NEAR(whole.rms, all.rms, 1e-9);
   EXPECT_FALSE(ramp.refine(src8.data, src8.step, src8.cols, src8.rows, rest, mask).converged);
   // A saturated square over all but the patch's last three rows: 45 of 225 pixels left.
   cv::Mat lit = src8.clone();

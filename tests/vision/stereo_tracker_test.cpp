@@ -428,12 +428,13 @@ TEST(StereoTracker, AFeatureItsNextPairsDoNotBearOutIsRetired) {
   EXPECT_FALSE(on_t.needsRedetection());
 }
 
-// The stereo refresh's consensus: a feature whose refresh matches agree with each other but
-// not with its first pair's match (which a one-off highlight or the noise put 0.7 px off) takes
-// theirs once kConsensusMin of them agree, where the running average alone would never get there
-// (it takes only matches within 0.5 px of the corrected track). Its reference point moves with
-// it: its displacement does not see the correction. Votes that disagree with each other (a
-// glint pulling one way, then the other) re-seat nothing.
+// The stereo refresh's consensus: a feature whose refresh matches agree with each other but not
+// with its first pair's match (0.7 px off, as a one-off highlight or the noise leaves it) takes
+// theirs once kConsensusMin of them agree, where the running average alone never gets (it takes
+// only matches within 0.5 px of the corrected track). The offset is put into the refresh job (the
+// feature's track 0.7 px off where the refresh matches it), so measureRefresh()'s own gates judge
+// the votes. Its reference point moves with it: its displacement does not see the correction.
+// Votes that disagree with each other (0.6-1.8 px off, spread) re-seat nothing.
 TEST(StereoTracker, AFirstStereoMatchItsNextPairsAgreeOffIsReseated) {
   sim::SceneSpec spec = staticCortex();
   spec.supersample = 1;
@@ -451,10 +452,8 @@ TEST(StereoTracker, AFirstStereoMatchItsNextPairsAgreeOffIsReseated) {
   RefreshJob job(config);
   RefreshOutcome outcome(config);
   const cv::Vec2d off(0.7, 0.0);
-  // The split votes: 0.6-1.8 px off, all beyond the running average's 0.5 px, agreeing on nothing
-  // (their median absolute deviation 0.4 px).
-  constexpr std::array<double, 5> kSplit{0.6, 1.4, 1.0, 1.8, 0.8};
-  int votes = 0, split_votes = 0;
+  constexpr std::array<double, 5> kSplit{0.6, 1.4, 1.0, 1.8, 0.8};  // median abs deviation 0.4
+  int votes = 0, split_votes = 0, passed = 0;
   const auto displacement = [](const StereoTracker& t) {
     return t.features()[0].point - t.features()[0].point0;
   };
@@ -475,22 +474,35 @@ TEST(StereoTracker, AFirstStereoMatchItsNextPairsAgreeOffIsReseated) {
     EXPECT_LT(cv::norm(displacement(agreeing) - displacement(clean)), 0.01) << "pair " << i;
     for (StereoTracker* t : {&agreeing, &split, &clean}) {
       t->prepareRefresh(l, r, job);
+      // The victim's track off where the refresh will match it.
+      const cv::Vec2d shift =
+          t == &agreeing ? off
+                         : cv::Vec2d(kSplit[static_cast<size_t>(split_votes) % kSplit.size()], 0.0);
+      for (size_t k = 0; k < job.count && t != &clean; ++k) {
+        if (job.items[k].id != victim) continue;
+        job.items[k].right -= shift;
+        job.items[k].right_track -= shift;
+      }
       measureRefresh(job, outcome);
       for (size_t k = 0; k < outcome.count && t != &clean; ++k) {
-        RefreshOutcome::Match& m = outcome.matches[k];
-        if (m.id != victim || !m.agrees) continue;
-        const bool agree = t == &agreeing;
-        m.centre += agree ? off : cv::Vec2d(kSplit[static_cast<size_t>(split_votes) % 5], 0.0);
-        // Gated as measureRefresh() gates: within 0.5 px of the corrected track.
-        m.passed = cv::norm(m.centre - t->features()[0].right) <= 0.5;
-        (agree ? votes : split_votes) += 1;
+        const RefreshOutcome::Match& m = outcome.matches[k];
+        if (m.id != victim) continue;
+        EXPECT_TRUE(m.agrees) << "pair " << i;  // every gate but the distance passed
+        if (t == &agreeing) {
+          ++votes;
+          passed += m.passed ? 1 : 0;
+        } else {
+          ++split_votes;
+          EXPECT_FALSE(m.passed) << "pair " << i;  // 0.6 px or more from the track
+        }
       }
       (void)t->applyRefresh(outcome);
     }
   }
-  EXPECT_GE(votes, StereoTracker::kConsensusMin + 2);
-  EXPECT_GE(split_votes, StereoTracker::kConsensusMin + 2);
-  // The re-seat moved the victim's depth by what 0.7 px of disparity is.
+  EXPECT_EQ(votes, 3 * StereoTracker::kConsensusMin);  // every pair refreshes every feature
+  EXPECT_EQ(split_votes, votes);
+  // None of the first kConsensusMin was within 0.5 px; after the re-seat they all are.
+  EXPECT_EQ(passed, votes - StereoTracker::kConsensusMin);
   const double dz = agreeing.features()[0].point[2] - clean.features()[0].point[2];
   std::cout << "a first stereo match 0.7 px off, its refresh matches agreeing: re-seated after "
             << StereoTracker::kConsensusMin << " votes, its depth moved " << dz << " mm\n";

@@ -234,7 +234,7 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
                                     int max_iterations, double epsilon_px) const noexcept {
   AffineResult res;
   res.warp = start;
-  if (ramp_ || 4 * mask.count < kAffinePixels) return res;
+  if (ramp_) return res;
   // The template's mean, spread and Hessian over the pixels taking part.
   double n = 0.0, s = 0.0, s2 = 0.0;
   cv::Matx<double, 6, 6> h = cv::Matx<double, 6, 6>::zeros();
@@ -252,6 +252,7 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
   for (int i = 0; i < 6; ++i) {
     for (int j = 0; j < i; ++j) h(i, j) = h(j, i);
   }
+  if (4.0 * n < kAffinePixels) return res;  // too little left to say where it is
   const double mean = s / n;
   const double spread = std::sqrt(std::max(0.0, s2 / n - mean * mean));
   if (spread < 1.0) return res;
@@ -259,7 +260,7 @@ AffineResult AffineTemplate::refine(const uint8_t* image, size_t stride, int wid
   const cv::Matx<double, 6, 6> h_inv = h.inv(cv::DECOMP_CHOLESKY, &ok);
   if (!ok) return res;
   return iterate(image, stride, width, height, start, max_iterations, epsilon_px,
-                 mask.weight.data(), h_inv, mean, spread, mask.count);
+                 mask.weight.data(), h_inv, mean, spread, static_cast<int>(n));
 }
 
 AffineResult AffineTemplate::iterate(const uint8_t* image, size_t stride, int width, int height,
@@ -333,6 +334,25 @@ AffineResult AffineTemplate::iterate(const uint8_t* image, size_t stride, int wi
 void AffineMask::reset() noexcept {
   weight.fill(1.0F);
   count = kAffinePixels;
+}
+
+double AffineMask::meanOver(const uint8_t* image, size_t stride, int width, int height,
+                            const AffineWarp& warp) const noexcept {
+  double sum = 0.0;
+  int n = 0;
+  size_t k = 0;
+  for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
+    for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
+      if (weight[k] == 0.0F) continue;
+      const double u = warp.centre[0] + warp.a(0, 0) * x + warp.a(0, 1) * y;
+      const double v = warp.centre[1] + warp.a(1, 0) * x + warp.a(1, 1) * y;
+      if (!(u > -0.5) || !(v > -0.5) || u >= width - 0.5 || v >= height - 0.5) continue;
+      const auto cx = static_cast<size_t>(std::lround(u)), cy = static_cast<size_t>(std::lround(v));
+      sum += image[cy * stride + cx];
+      ++n;
+    }
+  }
+  return n > 0 ? sum / n : 0.0;
 }
 
 double AffineMask::leaveOutGlints(const uint8_t* image, size_t stride, int width, int height,

@@ -1541,21 +1541,19 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
     const cv::Mat l = job.window(k, 0), r = job.window(k, 1);
     const cv::Vec2d o_l(it.origin[0].x, it.origin[0].y), o_r(it.origin[1].x, it.origin[1].y);
     const cv::Vec2d at_l = it.left - o_l, at_r = it.right - o_r;
-    // The same refinement as the first pair's match, from where the feature is now; with a
-    // glint near either view there, with its pixels left out.
-    const bool glint_near =
-        neighbourhoodMax(r, at_r, job.specular_margin_px) >= job.specular_threshold ||
+    // The same refinement as the first pair's match, from where the feature is now. With a
+    // glint near either view there, the affine match leaves its pixels (grown by glint_grow_px)
+    // out; where that leaves nothing out, the glint is farther than the mask reaches (clear: the
+    // whole template, as with none near). Where the match cannot mask (blobs, the ramp model,
+    // masking off), it is gated as before: a glint near is no match.
+    const bool glint_left =
         neighbourhoodMax(l, at_l, job.specular_margin_px) >= job.specular_threshold;
-    bool masked = false;
+    bool masked = false, clear = false;
     AffineResult ar;
-    if (job.dark_blobs) {
-      if (!glint_near && out.shift.set(l.data, l.step, l.cols, l.rows, at_l))
-        ar = out.shift.refine(r.data, r.step, r.cols, r.rows, at_r);
-    } else if (glint_near) {
-      if (job.max_glint_fraction <= 0.0 || job.ramp ||
-          !out.affine.set(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()}, false)) {
-        continue;
-      }
+    if (!job.dark_blobs && !job.ramp && job.max_glint_fraction > 0.0 &&
+        (glint_left ||
+         neighbourhoodMax(r, at_r, job.specular_margin_px) >= job.specular_threshold) &&
+        out.affine.set(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()}, false)) {
       out.mask.reset();
       out.mask.leaveOutGlints(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()},
                               job.specular_threshold, job.glint_grow_px);
@@ -1564,21 +1562,32 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
                                   job.glint_grow_px) > job.max_glint_fraction) {
         continue;
       }
-      ar = out.affine.refine(r.data, r.step, r.cols, r.rows, {at_r, it.warp}, out.mask, 20, 0.01);
-      if (!ar.converged) continue;
-      masked = true;
-    } else if (out.affine.set(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()},
-                              job.ramp)) {
-      ar = out.affine.refine(r.data, r.step, r.cols, r.rows, {at_r, it.warp}, 20, 0.01);
+      if (out.mask.count < kAffinePixels) {
+        ar = out.affine.refine(r.data, r.step, r.cols, r.rows, {at_r, it.warp}, out.mask, 20, 0.01);
+        if (!ar.converged) continue;
+        masked = true;
+      } else {
+        clear = true;
+      }
+    }
+    if (!masked) {
+      if (job.dark_blobs) {
+        if (out.shift.set(l.data, l.step, l.cols, l.rows, at_l))
+          ar = out.shift.refine(r.data, r.step, r.cols, r.rows, at_r);
+      } else if (out.affine.set(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()},
+                                job.ramp)) {
+        ar = out.affine.refine(r.data, r.step, r.cols, r.rows, {at_r, it.warp}, 20, 0.01);
+      }
     }
     // Gated as the first match was: only a match that converged near the corrected track, with
-    // no sheen and no glint in either view, is averaged in (passed). Every refinement that ran
-    // (settled or not) with no glint near is also a stereo confirmation try (applyRefresh()):
-    // its NCC against the gate. One that did not run (the window clipped by the border, a flat
-    // patch) says nothing.
+    // no sheen and no glint in either view (or its glint left out), is averaged in (passed).
+    // Every unmasked refinement that ran (settled or not) with no glint near (or clear) is also a
+    // stereo confirmation try (applyRefresh()): its NCC against the gate. One that did not run (the
+    // window clipped by the border, a flat patch) says nothing.
     if (!ar.converged && !(ar.rms > 0.0)) continue;
-    if (!masked &&
-        neighbourhoodMax(r, ar.warp.centre, job.specular_margin_px) >= job.specular_threshold) {
+    if (!masked && !clear &&
+        (glint_left ||
+         neighbourhoodMax(r, ar.warp.centre, job.specular_margin_px) >= job.specular_threshold)) {
       continue;
     }
     RefreshOutcome::Match& match = out.matches[out.count++];
@@ -1590,11 +1599,13 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
     const double far = cv::norm(ar.warp.centre - at_r);
     match.masked = masked;
     if (ar.converged && far <= job.consensus_far_px && match.ncc_ok) {
-      // The sheen gate: the patch's brightness ratio between the views (a masked match's
-      // glint is left out of the match, not of the ratio).
-      const double mr = regionMean(r, ar.warp.centre, half);
-      match.agrees =
-          masked || std::abs(mr / out.left_mean[j] / it.view_gain / drift - 1.0) <= job.max_sheen;
+      // The sheen gate: the patch's brightness ratio between the views (with its margin; a
+      // masked match's over the pixels it kept, its glint left out of the ratio too).
+      const double ratio =
+          masked ? out.mask.meanOver(r.data, r.step, r.cols, r.rows, ar.warp) /
+                       out.mask.meanOver(l.data, l.step, l.cols, l.rows, {at_l, cv::Matx22d::eye()})
+                 : regionMean(r, ar.warp.centre, half) / out.left_mean[j];
+      match.agrees = std::abs(ratio / it.view_gain / drift - 1.0) <= job.max_sheen;
       match.passed = match.agrees && far <= 0.5;
     }
     match.right_track = it.right_track;
@@ -1683,7 +1694,7 @@ int StereoTracker::applyRefresh(const RefreshOutcome& outcome) noexcept {
         s.unconfirmed = true;  // hidden from the next pair on, retired at the next detection
       }
     }
-    if (m.agrees && reseat(s, m.centre - m.right_track)) {
+    if (m.agrees && reseat(s, m.centre - m.right_track, m.warp)) {
       // The first pair's match was off (its votes agree elsewhere): the offset starts again
       // from theirs, the reference point with it.
       const Triangulation t0 = triangulate(rig_, s.left0, s.right0 + s.stereo_offset);
@@ -1703,7 +1714,7 @@ int StereoTracker::applyRefresh(const RefreshOutcome& outcome) noexcept {
   return taken;
 }
 
-bool StereoTracker::reseat(State& s, const cv::Vec2d& vote) noexcept {
+bool StereoTracker::reseat(State& s, const cv::Vec2d& vote, const cv::Matx22d& warp) noexcept {
   s.votes[static_cast<size_t>(s.vote_next)] = vote;
   s.vote_next = (s.vote_next + 1) % kConsensus;
   s.vote_count = std::min(s.vote_count + 1, kConsensus);
@@ -1722,6 +1733,7 @@ bool StereoTracker::reseat(State& s, const cv::Vec2d& vote) noexcept {
     return false;
   }
   s.stereo_offset = med;
+  s.stereo_warp = warp;  // the latest vote's shape (the first pair's was off too)
   s.stereo_samples = s.vote_count;
   s.vote_count = 0;  // the next re-seat needs votes of its own
   s.vote_next = 0;

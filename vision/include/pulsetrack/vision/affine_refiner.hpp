@@ -70,12 +70,18 @@ struct AffineMask {
   std::array<float, kAffinePixels> weight{};  // 0 or 1, row-major
   int count = 0;                              // pixels taking part
 
-  // Every pixel, then those of the patch that `warp` places on `image` within `grow_px`
-  // (Chebyshev distance) of a pixel at or above `threshold` left out; may be called once per
-  // view (the left template's and the right match's). Returns the fraction left out so far.
+  // Every pixel taking part.
   void reset() noexcept;
+  // Leaves out, besides those already left out (it does not reset: call it once per view, the
+  // left template's and the right match's), the pixels of the patch that `warp` places on
+  // `image` within `grow_px` (Chebyshev distance) of a pixel at or above `threshold`. Returns
+  // the fraction left out so far.
   double leaveOutGlints(const uint8_t* image, size_t stride, int width, int height,
                         const AffineWarp& warp, int threshold, int grow_px) noexcept;
+  // The mean grey level of the pixels taking part, as `warp` places the patch on `image`
+  // (nearest pixel; those outside the image skipped); 0 when none is left.
+  [[nodiscard]] double meanOver(const uint8_t* image, size_t stride, int width, int height,
+                                const AffineWarp& warp) const noexcept;
 };
 
 class AffineTemplate {

@@ -334,8 +334,8 @@ struct RefreshOutcome {
     // Every gate but the distance from the corrected track (within kConsensusFarPx): a vote in
     // the feature's consensus (StereoTracker::applyRefresh()).
     bool agrees = false;
-    // Refined with a glint near left out (AffineMask): not a stereo confirmation try (the
-    // first pair's match had no glint near).
+    // Refined with a glint near left out (AffineMask; its sheen gate over the pixels kept): not
+    // a stereo confirmation try (the first pair's match had no glint near).
     bool masked = false;
   };
   RefreshOutcome() = default;
@@ -482,8 +482,9 @@ class StereoTracker {
 
  private:
   struct State;
-  // One vote in s's consensus; true when it re-seated s's stereo offset.
-  static bool reseat(State& s, const cv::Vec2d& vote) noexcept;
+  // One vote in s's consensus (a match's offset from the track and its stereo warp); true when
+  // it re-seated s's stereo offset (and warp).
+  static bool reseat(State& s, const cv::Vec2d& vote, const cv::Matx22d& warp) noexcept;
   struct State {
     NccTemplate ncc[2];
     ShiftTemplate shift[2];
