@@ -349,6 +349,15 @@ TEST(StereoTracker, RedetectsWhenTooFewRemain) {
   for (const Feature& f : t2.features()) EXPECT_GT(f.id, max_id2);
 }
 
+// staticCortex() rendered without supersampling and without the instrument: pairs fast enough to
+// track every feature's stereo refresh in every pair.
+sim::StereoSimulator quickStaticCortex() {
+  sim::SceneSpec spec = staticCortex();
+  spec.supersample = 1;
+  spec.cortex.instrument.enabled = false;
+  return {spec, sim::paperRig()};
+}
+
 // The stereo confirmation (min_stereo_confirmed): a feature whose stereo refresh matches in the
 // pairs after its detection fail the stereo NCC gate (here one feature's verdicts are made to
 // fail; the matches are real) is hidden as outlier_epipolar:stereo_ncc after its
@@ -357,10 +366,7 @@ TEST(StereoTracker, RedetectsWhenTooFewRemain) {
 // by itself. Off (0), the same verdicts retire nothing. On the scene it is for, with real
 // verdicts: RealTexture.TrackedAgainstExactTruthAtEachResolution (real-texture-hard's bound).
 TEST(StereoTracker, AFeatureItsNextPairsDoNotBearOutIsRetired) {
-  sim::SceneSpec spec = staticCortex();
-  spec.supersample = 1;
-  spec.cortex.instrument.enabled = false;
-  sim::StereoSimulator s(spec, sim::paperRig());
+  sim::StereoSimulator s = quickStaticCortex();
   TrackerConfig config;
   config.stereo_refresh = config.max_features;  // every feature tried in every pair
   TrackerConfig off = config;
@@ -436,10 +442,7 @@ TEST(StereoTracker, AFeatureItsNextPairsDoNotBearOutIsRetired) {
 // the votes. Its reference point moves with it: its displacement does not see the correction.
 // Votes that disagree with each other (0.6-1.8 px off, spread) re-seat nothing.
 TEST(StereoTracker, AFirstStereoMatchItsNextPairsAgreeOffIsReseated) {
-  sim::SceneSpec spec = staticCortex();
-  spec.supersample = 1;
-  spec.cortex.instrument.enabled = false;
-  sim::StereoSimulator s(spec, sim::paperRig());
+  sim::StereoSimulator s = quickStaticCortex();
   TrackerConfig config;
   config.stereo_refresh = config.max_features;  // every feature tried in every pair
   cv::Mat l, r;

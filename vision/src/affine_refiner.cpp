@@ -336,28 +336,12 @@ void AffineMask::reset() noexcept {
   count = kAffinePixels;
 }
 
-double AffineMask::meanOver(const uint8_t* image, size_t stride, int width, int height,
-                            const AffineWarp& warp) const noexcept {
-  double sum = 0.0;
-  int n = 0;
-  size_t k = 0;
-  for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
-    for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
-      if (weight[k] == 0.0F) continue;
-      const double u = warp.centre[0] + warp.a(0, 0) * x + warp.a(0, 1) * y;
-      const double v = warp.centre[1] + warp.a(1, 0) * x + warp.a(1, 1) * y;
-      if (!(u > -0.5) || !(v > -0.5) || u >= width - 0.5 || v >= height - 0.5) continue;
-      const auto cx = static_cast<size_t>(std::lround(u)), cy = static_cast<size_t>(std::lround(v));
-      sum += image[cy * stride + cx];
-      ++n;
-    }
-  }
-  return n > 0 ? sum / n : 0.0;
-}
-
-double AffineMask::leaveOutGlints(const uint8_t* image, size_t stride, int width, int height,
-                                  const AffineWarp& warp, int threshold, int grow_px) noexcept {
-  const int g = std::max(0, grow_px);
+namespace {
+// Calls f(k, cx, cy) for each pixel k of the mask that takes part, with the nearest image pixel
+// (cx, cy) that `warp` places it on (unclipped; positions beyond +-1e6 skipped).
+template <class F>
+void forKeptPixels(const std::array<float, kAffinePixels>& weight, const AffineWarp& warp,
+                   F&& f) noexcept {
   size_t k = 0;
   for (int y = -kAffineHalf; y <= kAffineHalf; ++y) {
     for (int x = -kAffineHalf; x <= kAffineHalf; ++x, ++k) {
@@ -365,23 +349,39 @@ double AffineMask::leaveOutGlints(const uint8_t* image, size_t stride, int width
       const double u = warp.centre[0] + warp.a(0, 0) * x + warp.a(0, 1) * y;
       const double v = warp.centre[1] + warp.a(1, 0) * x + warp.a(1, 1) * y;
       if (!(std::abs(u) < 1e6) || !(std::abs(v) < 1e6)) continue;
-      const int cx = static_cast<int>(std::lround(u)), cy = static_cast<int>(std::lround(v));
-      bool glint = false;
-      for (int yy = std::max(0, cy - g); yy <= std::min(height - 1, cy + g) && !glint; ++yy) {
-        const uint8_t* row = image + static_cast<size_t>(yy) * stride;
-        for (int xx = std::max(0, cx - g); xx <= std::min(width - 1, cx + g); ++xx) {
-          if (row[xx] >= threshold) {
-            glint = true;
-            break;
-          }
-        }
-      }
-      if (glint) {
-        weight[k] = 0.0F;
-        --count;
-      }
+      f(k, static_cast<int>(std::lround(u)), static_cast<int>(std::lround(v)));
     }
   }
+}
+}  // namespace
+
+double AffineMask::meanOver(const uint8_t* image, size_t stride, int width, int height,
+                            const AffineWarp& warp) const noexcept {
+  double sum = 0.0;
+  int n = 0;
+  forKeptPixels(weight, warp, [&](size_t, int cx, int cy) {
+    if (cx < 0 || cy < 0 || cx >= width || cy >= height) return;
+    sum += image[static_cast<size_t>(cy) * stride + static_cast<size_t>(cx)];
+    ++n;
+  });
+  return n > 0 ? sum / n : 0.0;
+}
+
+double AffineMask::leaveOutGlints(const uint8_t* image, size_t stride, int width, int height,
+                                  const AffineWarp& warp, int threshold, int grow_px) noexcept {
+  const int g = std::max(0, grow_px);
+  forKeptPixels(weight, warp, [&](size_t k, int cx, int cy) {
+    for (int yy = std::max(0, cy - g); yy <= std::min(height - 1, cy + g); ++yy) {
+      const uint8_t* row = image + static_cast<size_t>(yy) * stride;
+      for (int xx = std::max(0, cx - g); xx <= std::min(width - 1, cx + g); ++xx) {
+        if (row[xx] >= threshold) {
+          weight[k] = 0.0F;  // forKeptPixels read it before the call: safe to clear
+          --count;
+          return;
+        }
+      }
+    }
+  });
   return 1.0 - static_cast<double>(count) / kAffinePixels;
 }
 

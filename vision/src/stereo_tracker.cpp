@@ -1598,7 +1598,7 @@ void measureRefresh(const RefreshJob& job, RefreshOutcome& out) noexcept {
     match.agrees = false;
     const double far = cv::norm(ar.warp.centre - at_r);
     match.masked = masked;
-    if (ar.converged && far <= job.consensus_far_px && match.ncc_ok) {
+    if (ar.converged && far <= StereoTracker::kConsensusFarPx && match.ncc_ok) {
       // The sheen gate: the patch's brightness ratio between the views (with its margin; a
       // masked match's over the pixels it kept, its glint left out of the ratio too).
       const double ratio =
@@ -1626,7 +1626,6 @@ void StereoTracker::prepareRefresh(const cv::Mat& left, const cv::Mat& right,
   }
   job.min_ncc = std::max(config_.min_ncc, gates_.min_stereo_ncc);
   job.max_sheen = gates_.max_sheen;
-  job.consensus_far_px = kConsensusFarPx;
   job.max_glint_fraction = config_.max_glint_fraction;
   job.glint_grow_px = config_.glint_grow_px;
   job.specular_margin_px = config_.specular_margin_px;

@@ -314,7 +314,6 @@ struct RefreshJob {
   size_t count = 0;
   // The gates as the tracker had them at prepareRefresh().
   double min_ncc = 0.0, max_sheen = 0.0;
-  double consensus_far_px = 0.5;  // how far from the corrected track a match still votes
   // A glint near: its pixels (grown by glint_grow_px) left out of the match, when at most
   // max_glint_fraction of the template is; 0: such features are not matched.
   double max_glint_fraction = 0.0;
